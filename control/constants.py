@@ -1,0 +1,31 @@
+"""Physical constants and naming conventions shared by every module (SI units)."""
+
+from __future__ import annotations
+
+#: ISO 6358 reference temperature [K].
+T_REF: float = 293.15
+#: Air density at the ISO 6358 reference conditions [kg/m^3].
+RHO0: float = 1.185
+
+#: Valve order everywhere (arrays of four are in this order): charge A, exhaust A, charge B,
+#: exhaust B.
+VALVES: tuple[str, str, str, str] = ("a_in", "a_out", "b_in", "b_out")
+A_IN, A_OUT, B_IN, B_OUT = 0, 1, 2, 3
+
+#: Keys of the ``rig`` block (plant.yaml, model.yaml, controller.yaml and the MCAP ``rig``
+#: metadata record). All are floats in SI units except ``pwm_update``.
+RIG_KEYS: tuple[str, ...] = (
+    "A_a", "A_b", "x_min", "x_max", "V0a", "V0b", "p0", "p_s", "T0", "n", "R", "Ts",
+    "pwm_hz", "pwm_update",
+)
+#: Allowed values of ``rig.pwm_update``.
+PWM_UPDATE_MODES: tuple[str, str] = ("immediate", "latched")
+
+#: The paper's θ = [M, F_n, b_v, A_f, D_an, D_bn] (Sec. 2.3); this order is kept everywhere.
+THETA_NAMES: tuple[str, ...] = ("M", "F_n", "b_v", "A_f", "D_an", "D_bn")
+
+#: Schema identifiers of the file contracts.
+LOG_SCHEMA = "pneutune.log/1"
+PLANT_SCHEMA = "pneutune.plant/1"
+MODEL_SCHEMA = "pneutune.model/1"
+CONTROLLER_SCHEMA = "pneutune.controller/1"

@@ -1,0 +1,83 @@
+"""Typed errors.
+
+Every error a user can cause with a bad file or a bad argument is a :class:`PneutuneError`.
+The command-line entry points turn it into one ``error: ...`` line on stderr and exit status 2
+(see :func:`pneutune.control.cli_common.run_cli`). Each also subclasses a builtin so that library
+users can catch it as the builtin they expect.
+"""
+
+from __future__ import annotations
+
+
+class PneutuneError(Exception):
+    """Base of all user-facing errors (bad input, not a bug)."""
+
+
+class ConfigError(PneutuneError, ValueError):
+    """A YAML configuration file is invalid.
+
+    Parameters
+    ----------
+    file : str
+        The file (or ``"<defaults>"``) the value came from.
+    key : str
+        Dotted key path, e.g. ``valves.a_in.C``; empty when the whole file is wrong.
+    message : str
+        The rule that was broken and the value that broke it.
+    """
+
+    def __init__(self, file: str, key: str, message: str) -> None:
+        self.file = str(file)
+        self.key = key
+        self.message = message
+        where = f"{self.file}: {key}: " if key else f"{self.file}: "
+        super().__init__(where + message)
+
+
+class LogError(PneutuneError, ValueError):
+    """A run log (MCAP, contract 1) cannot be used.
+
+    Parameters
+    ----------
+    file : str
+        Path of the log.
+    message : str
+        What is wrong and, where known, the record (topic, log time) that is wrong.
+    """
+
+    def __init__(self, file: str, message: str) -> None:
+        self.file = str(file)
+        self.message = message
+        super().__init__(f"{self.file}: {message}")
+
+
+class NotMcapError(LogError):
+    """The file is not an MCAP file (bad magic or unreadable header)."""
+
+
+class TruncatedLogError(LogError):
+    """The file is an MCAP file that was cut short or is internally corrupt."""
+
+
+class EmptyLogError(LogError):
+    """The file holds no messages."""
+
+
+class MissingTopicError(LogError):
+    """A required topic is absent."""
+
+
+class NonFiniteValueError(LogError):
+    """A numeric field holds NaN, an infinity or null."""
+
+
+class TimeOrderError(LogError):
+    """Log times of a topic go backwards."""
+
+
+class MissingMetadataError(LogError):
+    """The ``rig`` or ``run`` metadata record is missing or incomplete."""
+
+
+class ExperimentError(PneutuneError, ValueError):
+    """An experiment or scenario cannot be run as requested."""

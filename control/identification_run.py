@@ -1,0 +1,284 @@
+"""The identification run: an excitation protocol a commissioning engineer runs on a new rig.
+
+Like a commercial positioner's "identification run", it needs no tuned controller: every
+segment uses either fixed open-loop duties or a proportional position loop designed from the
+rig geometry alone (:func:`position_loop`). It only needs the stroke ends, so it runs unchanged
+on any rig, simulated or real. Segments, in order, each labelled on ``/experiment/segment``:
+
+1. ``rest``: valves closed, piston at rest (sensor noise, leaks, drift).
+2. ``valve`` tests for chamber A with the piston held against the B-side end stop:
+   ``prepare`` (a_in + b_out fully open drive the piston to x_max; b_out stays open so B stays at
+   ambient and the force ``(p_a - p0) A_a >= 0`` keeps the piston on the stop), then for each
+   duty of the sweep a ``valve_discharge`` through a_out and a ``valve_charge`` through a_in.
+   Each valve thus charges or discharges a fixed, known volume at full duty and over a sweep of
+   duties: this gives C, b and the PWM curve.
+3. The same for chamber B against the A-side end stop (a_out open, b_in / b_out swept).
+4. ``constant_speed``: position-loop ramps at several speeds in both directions (friction).
+5. ``acceleration``: position-loop sines of rising frequency whose duties saturate (mass).
+6. ``rest`` again.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .constants import A_IN, A_OUT, B_IN, B_OUT
+from .errors import ExperimentError
+from .recording import Recording
+from .rig import Rig
+
+#: Duty sweep of the valve tests (1 first: the full-duty charge/discharge).
+DEFAULT_DUTIES: tuple[float, ...] = (1.0, 0.7, 0.5, 0.35, 0.25, 0.18, 0.12, 0.08, 0.05)
+#: Ramp speeds of the friction segments [m/s].
+DEFAULT_SPEEDS: tuple[float, ...] = (0.003, 0.006, 0.012, 0.025, 0.05, 0.1)
+#: Sine frequencies [Hz] and cycles of the acceleration segments.
+DEFAULT_SINES: tuple[tuple[float, int], ...] = ((0.5, 2), (1.0, 3), (2.0, 4), (3.0, 6))
+
+Reference = Callable[[float], tuple[float, float, float]]
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One step of an experiment.
+
+    Attributes
+    ----------
+    label : str
+        Unique, human-readable name (``valve_charge:a_in:0.50``).
+    kind : str
+        rest | prepare | valve_charge | valve_discharge | constant_speed | acceleration | hold.
+    duration : float
+        [s].
+    params : dict
+        JSON-serialisable description (logged with the label).
+    duties : ndarray or None
+        Fixed open-loop duties [a_in, a_out, b_in, b_out], or None for the position loop.
+    reference : callable or None
+        ``t_rel -> (x_r, v_r, a_r)`` for the position loop.
+    """
+
+    label: str
+    kind: str
+    duration: float
+    params: dict[str, Any] = field(default_factory=dict)
+    duties: np.ndarray | None = None
+    reference: Reference | None = None
+
+
+def position_loop(x: float, x_r: float, band: float) -> np.ndarray:
+    """Proportional position loop that needs only the stroke: full duty beyond ``band``.
+
+    ``u = clip((x_r - x) / band, -1, 1)``; u > 0 opens a_in and b_out with duty u (mode 1),
+    u < 0 opens a_out and b_in with duty -u (mode 2).
+
+    Parameters
+    ----------
+    x, x_r : float
+        Measured and reference position [m].
+    band : float
+        Error at which the duty saturates [m].
+
+    Returns
+    -------
+    ndarray
+        The four duties.
+    """
+    u = min(max((x_r - x) / band, -1.0), 1.0)
+    d = np.zeros(4)
+    if u > 0.0:
+        d[A_IN] = d[B_OUT] = u
+    elif u < 0.0:
+        d[A_OUT] = d[B_IN] = -u
+    return d
+
+
+def _duties(**open_: float) -> np.ndarray:
+    d = np.zeros(4)
+    for name, u in open_.items():
+        d[{"a_in": A_IN, "a_out": A_OUT, "b_in": B_IN, "b_out": B_OUT}[name]] = u
+    return d
+
+
+def _valve_block(chamber: str, duties: Sequence[float]) -> list[Segment]:
+    """Charge/discharge sweep of one chamber with the piston held on the far end stop."""
+    if chamber == "a":
+        prep = _duties(a_in=1.0, b_out=1.0)
+        hold, fill, vent, stop = "b_out", "a_in", "a_out", "x_max"
+    else:
+        prep = _duties(a_out=1.0, b_in=1.0)
+        hold, fill, vent, stop = "a_out", "b_in", "b_out", "x_min"
+    segs = [Segment(f"prepare:{chamber}", "prepare", 1.5,
+                    {"chamber": chamber, "end_stop": stop, "open": [fill, hold]}, prep)]
+    for u in duties:
+        t_half = min(max(0.5 / u, 0.5), 2.0)
+        for kind, valve in (("valve_discharge", vent), ("valve_charge", fill)):
+            segs.append(Segment(
+                f"{kind}:{valve}:{u:.2f}", kind, t_half,
+                {"chamber": chamber, "valve": valve, "duty": u, "held_open": hold,
+                 "end_stop": stop},
+                _duties(**{valve: u, hold: 1.0})))
+    segs.append(Segment(f"valve_discharge:{vent}:final", "valve_discharge", 1.0,
+                        {"chamber": chamber, "valve": vent, "duty": 1.0, "held_open": hold,
+                         "end_stop": stop}, _duties(**{vent: 1.0, hold: 1.0})))
+    return segs
+
+
+def _hold(x: float, duration: float, label: str) -> Segment:
+    return Segment(label, "hold", duration, {"x": x}, None, lambda t, x=x: (x, 0.0, 0.0))
+
+
+def _ramp(x_from: float, x_to: float, speed: float) -> Segment:
+    direction = 1.0 if x_to > x_from else -1.0
+    duration = abs(x_to - x_from) / speed
+
+    def ref(t: float) -> tuple[float, float, float]:
+        if t >= duration:
+            return x_to, 0.0, 0.0
+        return x_from + direction * speed * t, direction * speed, 0.0
+
+    return Segment(f"constant_speed:{'+' if direction > 0 else '-'}{speed * 1e3:.0f}mm/s",
+                   "constant_speed", duration,
+                   {"speed": speed * direction, "x_from": x_from, "x_to": x_to}, None, ref)
+
+
+def _sine(mid: float, amp: float, freq: float, cycles: int) -> Segment:
+    w = 2.0 * math.pi * freq
+
+    def ref(t: float) -> tuple[float, float, float]:
+        return mid + amp * math.sin(w * t), amp * w * math.cos(w * t), -amp * w * w * math.sin(w * t)
+
+    return Segment(f"acceleration:sine:{freq:g}Hz", "acceleration", cycles / freq,
+                   {"shape": "sine", "freq": freq, "amplitude": amp, "center": mid}, None, ref)
+
+
+def identification_protocol(x_min: float, x_max: float,
+                            duties: Sequence[float] = DEFAULT_DUTIES,
+                            speeds: Sequence[float] = DEFAULT_SPEEDS,
+                            sines: Sequence[tuple[float, int]] = DEFAULT_SINES,
+                            ) -> list[Segment]:
+    """The segments of the identification run for a rig with the given stroke.
+
+    Parameters
+    ----------
+    x_min, x_max : float
+        Stroke ends [m].
+    duties : sequence of float
+        Duty sweep of the valve tests.
+    speeds : sequence of float
+        Ramp speeds of the friction segments [m/s].
+    sines : sequence of (float, int)
+        (frequency [Hz], cycles) of the acceleration segments.
+
+    Returns
+    -------
+    list of Segment
+    """
+    if not x_max > x_min:
+        raise ExperimentError(f"x_max > x_min must hold, got x_min={x_min}, x_max={x_max}")
+    stroke = x_max - x_min
+    mid = 0.5 * (x_min + x_max)
+    lo, hi = x_min + 0.15 * stroke, x_max - 0.15 * stroke
+    segs = [Segment("rest:start", "rest", 1.0, {}, np.zeros(4))]
+    segs += _valve_block("a", duties)
+    segs += _valve_block("b", duties)
+    segs.append(_hold(lo, 1.5, "hold:start_friction"))
+    for v in speeds:
+        travel = min(hi - lo, v * 4.0)
+        segs.append(_ramp(lo, lo + travel, v))
+        segs.append(_hold(lo + travel, 0.4, f"hold:+{v * 1e3:.0f}mm/s"))
+        segs.append(_ramp(lo + travel, lo, v))
+        segs.append(_hold(lo, 0.4, f"hold:-{v * 1e3:.0f}mm/s"))
+    segs.append(_hold(mid, 1.0, "hold:start_acceleration"))
+    for freq, cycles in sines:
+        segs.append(_sine(mid, 0.3 * stroke, freq, cycles))
+    segs.append(_hold(mid, 1.0, "hold:end"))
+    segs.append(Segment("rest:end", "rest", 1.0, {}, np.zeros(4)))
+    return segs
+
+
+def protocol_samples(segments: Sequence[Segment], Ts: float) -> int:
+    """Number of samples the protocol takes at sampling period ``Ts``."""
+    return sum(int(round(s.duration / Ts)) for s in segments)
+
+
+def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
+                 record_truth: bool = True,
+                 progress: Callable[[int, int], None] | None = None) -> Recording:
+    """Run segments on a rig and record everything (contract 1 topics).
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig (``SimRig`` records ``/sim/truth`` too when ``record_truth``).
+    segments : sequence of Segment
+        The protocol.
+    band : float
+        Saturation band of the position loop [m].
+    record_truth : bool
+        Record ``/sim/truth`` (only meaningful for a simulated rig).
+    progress : callable, optional
+        Called as ``progress(done, total)`` every few hundred samples.
+
+    Returns
+    -------
+    Recording
+    """
+    n_total = protocol_samples(segments, rig.Ts)
+    has_truth = record_truth and hasattr(rig, "truth")
+    rec = Recording(n_total, rig.Ts, truth=has_truth, reference=True)
+    k = 0
+    for seg in segments:
+        n_seg = int(round(seg.duration / rig.Ts))
+        rec.segment(k * rig.Ts, seg.label, seg.kind, seg.params)
+        for j in range(n_seg):
+            y = rig.read()
+            rec.sensors_[k] = y
+            if has_truth:
+                rec.truth_[k] = rig.truth()  # type: ignore[attr-defined]
+            if seg.reference is not None:
+                xr, vr, ar = seg.reference(j * rig.Ts)
+                rec.reference_[k] = (xr, vr, ar)
+                duties = position_loop(float(y[0]), xr, band)
+            else:
+                duties = seg.duties if seg.duties is not None else np.zeros(4)
+            rec.duties_[k] = duties
+            rig.write(duties)
+            rig.advance()
+            k += 1
+            if progress is not None and k % 500 == 0:
+                progress(k, n_total)
+    if progress is not None:
+        progress(k, n_total)
+    return rec
+
+
+def simulate_identification(plant_cfg: Any, seed: int | None = None,
+                            progress: Callable[[int, int], None] | None = None) -> Recording:
+    """Run the default identification protocol on the simulated rig.
+
+    Parameters
+    ----------
+    plant_cfg : PlantConfig
+        The simulated plant.
+    seed : int, optional
+        Sensor-noise seed; default the plant's ``sim.seed``.
+    progress : callable, optional
+        ``progress(done, total)`` callback.
+
+    Returns
+    -------
+    Recording
+        Sensors, duties, reference, ``/sim/truth`` and segment labels.
+    """
+    from .rig import SimRig
+
+    rig_cfg = plant_cfg.rig
+    segments = identification_protocol(rig_cfg.x_min, rig_cfg.x_max)
+    rig = SimRig(plant_cfg, seed=seed)
+    band = 0.05 * (rig_cfg.x_max - rig_cfg.x_min)
+    return run_protocol(rig, segments, band=band, record_truth=True, progress=progress)

@@ -1,0 +1,1 @@
+"""From run logs to model.yaml: data checks, fits, bounds and validation."""
