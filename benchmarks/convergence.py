@@ -11,7 +11,6 @@ periods for several ``sim.dt`` against a 10 us reference, for both PWM update mo
 from __future__ import annotations
 
 import numpy as np
-
 from pneutune.control.identification_run import position_loop
 from pneutune.control.plant_config import PlantConfig
 from pneutune.control.rig import SimRig
@@ -23,7 +22,7 @@ def tracking_metrics(dt: float, mode: str = "immediate", duration: float = 10.0,
     cfg = PlantConfig().with_updates({"sim": {"dt": dt}, "rig": {"pwm_update": mode}})
     rig = SimRig(cfg, seed=3)
     mid = 0.5 * (cfg.rig.x_min + cfg.rig.x_max)
-    n = int(round(duration / rig.Ts))
+    n = round(duration / rig.Ts)
     err = np.zeros(n)
     for k in range(n):
         x_r = mid + 0.0175 * np.sin(2.0 * np.pi * freq * k * rig.Ts)
@@ -31,7 +30,7 @@ def tracking_metrics(dt: float, mode: str = "immediate", duration: float = 10.0,
         err[k] = y[0] - x_r
         rig.write(position_loop(float(y[0]), x_r, 0.0025))
         rig.advance()
-    last = err[-int(round(3.0 / freq / rig.Ts)):]
+    last = err[-round(3.0 / freq / rig.Ts):]
     return float(np.abs(last).max() * 1e3), float(np.sqrt(np.mean(last**2)) * 1e3)
 
 

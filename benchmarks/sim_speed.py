@@ -59,7 +59,7 @@ def speed(duration: float = 20.0, repeats: int = 5) -> tuple[float, float]:
 
     pp = pack_plant(PlantConfig())
     Ts = pp.config.rig.Ts
-    n = int(round(duration / Ts))
+    n = round(duration / Ts)
     t = np.arange(n) * Ts
     u = 0.3 * np.sin(2.0 * np.pi * 1.0 * t)
     duties = np.zeros((n, 4))

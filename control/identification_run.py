@@ -150,7 +150,8 @@ def _sine(mid: float, amp: float, freq: float, cycles: int) -> Segment:
     w = 2.0 * math.pi * freq
 
     def ref(t: float) -> tuple[float, float, float]:
-        return mid + amp * math.sin(w * t), amp * w * math.cos(w * t), -amp * w * w * math.sin(w * t)
+        s, c = math.sin(w * t), math.cos(w * t)
+        return mid + amp * s, amp * w * c, -amp * w * w * s
 
     return Segment(f"acceleration:sine:{freq:g}Hz", "acceleration", cycles / freq,
                    {"shape": "sine", "freq": freq, "amplitude": amp, "center": mid}, None, ref)
@@ -203,7 +204,7 @@ def identification_protocol(x_min: float, x_max: float,
 
 def protocol_samples(segments: Sequence[Segment], Ts: float) -> int:
     """Number of samples the protocol takes at sampling period ``Ts``."""
-    return sum(int(round(s.duration / Ts)) for s in segments)
+    return sum(round(s.duration / Ts) for s in segments)
 
 
 def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
@@ -233,7 +234,7 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
     rec = Recording(n_total, rig.Ts, truth=has_truth, reference=True)
     k = 0
     for seg in segments:
-        n_seg = int(round(seg.duration / rig.Ts))
+        n_seg = round(seg.duration / rig.Ts)
         rec.segment(k * rig.Ts, seg.label, seg.kind, seg.params)
         for j in range(n_seg):
             y = rig.read()

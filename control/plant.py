@@ -222,7 +222,7 @@ def _velocity_zero(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, 
 def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: float) -> None:
     """Integrate ``s`` over ``h_total`` seconds with the valves as they are (no events inside)."""
     dt = p[P_DT]
-    nsteps = int(math.ceil(h_total / dt - 1.0e-9))
+    nsteps = math.ceil(h_total / dt - 1.0e-9)
     if nsteps < 1:
         nsteps = 1
     h = h_total / nsteps
@@ -402,7 +402,8 @@ def run_open_loop(p: np.ndarray, s: np.ndarray, duties: np.ndarray, p_s: np.ndar
         advance(p, s, (k + 1) * Ts, p_s[k], force_steps)
 
 
-def initial_state(p: np.ndarray, x0: float, p_a0: float, p_b0: float, t0: float = 0.0) -> np.ndarray:
+def initial_state(p: np.ndarray, x0: float, p_a0: float, p_b0: float,
+                  t0: float = 0.0) -> np.ndarray:
     """A plant state at rest at ``x0`` with the given chamber pressures and all valves closed.
 
     The piston starts stuck (v = 0). Use :func:`balanced_pressures` for pressures in force

@@ -7,6 +7,7 @@ a wrong type or an out-of-range value is a :class:`ConfigError` naming the key.
 
 from __future__ import annotations
 
+import itertools
 import os
 from typing import Any, Literal
 
@@ -20,7 +21,7 @@ from .yamlio import deep_merge, load_yaml_mapping, validate_model
 class _Strict(BaseModel):
     """Frozen, strict, no unknown keys: a misspelt key never falls back to a default."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class RigConfig(_Strict):
@@ -155,7 +156,7 @@ class DisturbanceConfig(_Strict):
         times = [t for t, _ in self.force_steps]
         if any(t < 0.0 for t in times):
             raise ValueError(f"force_steps times must be >= 0 s, got {times}")
-        if any(b <= a for a, b in zip(times, times[1:])):
+        if any(b <= a for a, b in itertools.pairwise(times)):
             raise ValueError(f"force_steps times must increase strictly, got {times}")
         return self
 
@@ -199,12 +200,13 @@ class PlantConfig(_Strict):
     sensors: SensorsConfig = SensorsConfig()
     sim: SimConfig = SimConfig()
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False,
+                              populate_by_name=True)
 
     @model_validator(mode="after")
     def _check(self) -> PlantConfig:
         period = self.rig.pwm_period
-        for name, valve in zip(VALVES, self.valves.ordered()):
+        for name, valve in zip(VALVES, self.valves.ordered(), strict=True):
             slowest = max(valve.delay_on, valve.delay_off)
             if slowest > 4.0 * period:
                 raise ValueError(

@@ -73,7 +73,8 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     v[P_FS], v[P_FC], v[P_VS], v[P_ALPHA], v[P_BV] = f.F_S, f.F_C, f.v_s, f.alpha, f.b_v
     for i, valve in enumerate(cfg.valves.ordered()):
         v[P_C + i], v[P_B + i] = valve.C, valve.b
-        v[P_DON + i], v[P_DOFF + i], v[P_MINP + i] = valve.delay_on, valve.delay_off, valve.min_pulse
+        v[P_DON + i], v[P_DOFF + i] = valve.delay_on, valve.delay_off
+        v[P_MINP + i] = valve.min_pulse
     v[P_LEAKC] = cfg.leak.C
     d = cfg.disturbance
     v[P_FN], v[P_DA], v[P_DB] = d.F_n, d.D_a, d.D_b

@@ -11,9 +11,8 @@ import numpy as np
 
 from . import __version__
 from .constants import LOG_SCHEMA, VALVES
+from .darc import CONTROL_STATE_FIELDS
 from .plant import SENSOR_FIELDS, TRUTH_FIELDS
-
-STATE_FIELDS = ("e1", "e2", "e3", "x_hat", "v_hat", "a_hat", "F_pd", "dF_pd", "Q_Ld")
 
 
 @dataclass
@@ -51,7 +50,7 @@ class Recording:
         if self.reference:
             self.reference_ = np.full((self.n, 3), np.nan)
         if self.control_state:
-            self.state_ = np.full((self.n, len(STATE_FIELDS) + 6), np.nan)
+            self.state_ = np.full((self.n, len(CONTROL_STATE_FIELDS) + 6), np.nan)
         self.segments_ = []
         self.events_ = []
 
@@ -98,18 +97,18 @@ class Recording:
             for t_seg, label, kind, params in self.segments_:
                 w.write("/experiment/segment", t_seg,
                         {"label": label, "kind": kind, "params": params})
-            w.write_many("/rig/sensors", t, dict(zip(SENSOR_FIELDS, self.sensors_.T)))
+            w.write_many("/rig/sensors", t, dict(zip(SENSOR_FIELDS, self.sensors_.T, strict=True)))
             w.write_many("/rig/valves", t,
-                         {f"u_{v}": col for v, col in zip(VALVES, self.duties_.T)})
+                         {f"u_{v}": col for v, col in zip(VALVES, self.duties_.T, strict=True)})
             if self.truth_ is not None:
-                w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, self.truth_.T)))
+                w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, self.truth_.T, strict=True)))
             if self.reference_ is not None:
                 ok = np.isfinite(self.reference_[:, 0])
                 w.write_many("/control/reference", t[ok],
-                             dict(zip(("x_r", "v_r", "a_r"), self.reference_[ok].T)))
+                             dict(zip(("x_r", "v_r", "a_r"), self.reference_[ok].T, strict=True)))
             if self.state_ is not None:
-                cols = {name: self.state_[:, i] for i, name in enumerate(STATE_FIELDS)}
-                cols["theta_hat"] = self.state_[:, len(STATE_FIELDS):]
+                cols = {name: self.state_[:, i] for i, name in enumerate(CONTROL_STATE_FIELDS)}
+                cols["theta_hat"] = self.state_[:, len(CONTROL_STATE_FIELDS):]
                 w.write_many("/control/state", t, cols)
             for t_ev, level, code, message in self.events_:
                 w.write("/rig/events", t_ev, {"level": level, "code": code, "message": message})

@@ -1,40 +1,59 @@
-"""``simulate``: run the simulated rig and write an MCAP run log."""
+"""``simulate``: run the simulated rig, open loop (identification run) or closed loop."""
 
 from __future__ import annotations
 
 import hashlib
 import os
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
 from .cli_common import info, make_parser, print_json, run_cli
 from .errors import ExperimentError
-from .plant_config import load_plant
+from .plant_config import PlantConfig, load_plant
 
 DESCRIPTION = """\
 Run the simulated rig (the paper's Sec. 2 model with valve switching, stiction, end stops and
 noisy sensors) and write the run as an MCAP log (contract pneutune.log/1) that `identify`,
 Foxglove or any MCAP reader opens.
 
-experiments:
-  identification   the identification run: each valve charging/discharging its chamber with the
-                   piston on an end stop (full duty and a duty sweep), ramps at several speeds
-                   in both directions, sines of rising frequency, rest. No tuned controller is
-                   needed: a proportional loop designed from the stroke alone moves the piston.
+Two modes:
+
+  --experiment identification
+      the identification run: each valve charging/discharging its chamber with the piston on
+      an end stop (full duty and a duty sweep), ramps at several speeds in both directions,
+      sines of rising frequency, rest. No tuned controller is needed: a proportional loop
+      designed from the stroke alone moves the piston. --out is required.
+
+  --controller C.yaml --scenario S
+      closed loop: the controller of C.yaml (contract 4) tracks a scenario; prints E_p and
+      E_rms over the last three periods (the paper's Sec. 5.1 indices) beside the paper's
+      Table 1. Scenarios:
+        sine-0.5hz         17.5 sin(pi t) mm, M = 1.05 kg
+        sine-0.75hz        17.5 sin(1.5 pi t) mm
+        sine-0.5hz-heavy   as sine-0.5hz with a 1.136 kg payload (M = 2.18 kg)
+        square-0.5hz       smooth square, 17.5 mm, 0.8 s quintic edges
+        disturbance-0.5hz  sine-0.5hz with 30 N at 7.6 s, 80 N at 9.8 s, removed at 11.9 s
+        table1             the first four;  all: all five
 """
 
 EPILOG = """\
 examples:
   simulate --experiment identification --seed 3 --out /tmp/r.mcap
-  simulate --experiment identification --plant my-rig.yaml --out data/my-run.mcap --json
+  simulate --controller data/controller-paper.yaml --scenario table1
+  simulate --controller data/controller-paper.yaml --scenario all --json
+  simulate --controller reports/tune/controller.yaml --scenario sine-0.5hz --out run.mcap \\
+           --plots reports/figs
 
-plant.yaml is merged over the paper's rig; see DESIGN.md, contract 2. The same seed gives the
-same log, bit for bit, in any process.
+With several scenarios, --out F.mcap writes F-<scenario>.mcap for each. plant.yaml is merged
+over the paper's rig (DESIGN.md, contract 2). The same seed gives the same numbers in any
+process.
 """
 
 
-def _sha256(path: str) -> str:
+def _sha256(path: str | os.PathLike[str]) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -42,27 +61,11 @@ def _sha256(path: str) -> str:
     return h.hexdigest()
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``simulate``."""
-    parser = make_parser("simulate", DESCRIPTION, EPILOG)
-    parser.add_argument("--experiment", choices=["identification"], required=True,
-                        help="the experiment to run")
-    parser.add_argument("--out", required=True, metavar="F.mcap", help="the log to write")
-    parser.add_argument("--plant", metavar="P.yaml", help="plant.yaml (default: the paper's rig)")
-    parser.add_argument("--seed", type=int, metavar="N",
-                        help="sensor-noise seed (default: sim.seed of the plant, 1)")
-    parser.add_argument("--json", action="store_true",
-                        help="print one JSON object describing the log on stdout")
-    args = parser.parse_args(argv)
-
-    plant_cfg = load_plant(args.plant)
-    if args.seed is not None and args.seed < 0:
-        raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
-    seed = plant_cfg.sim.seed if args.seed is None else args.seed
-    plant_cfg = plant_cfg.with_updates({"sim": {"seed": seed}})
-
+def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
     from .identification_run import simulate_identification
 
+    if args.out is None:
+        raise ExperimentError("--experiment identification needs --out F.mcap")
     bar = tqdm(total=1, unit="sample", desc="identification run", disable=None, leave=False)
 
     def progress(done: int, total: int) -> None:
@@ -92,6 +95,105 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _out_path(out: str, scenario: str, several: bool) -> Path:
+    p = Path(out)
+    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p
+
+
+def format_table(rows: list[tuple[str, dict[str, Any], tuple[float, float] | None]],
+                 title: str) -> str:
+    """A text table of the metrics beside the paper's Table 1 (rig) figures."""
+    head = (f"{'scenario':<19}{'E_p [mm]':>9}{'E_rms [mm]':>11}{'paper E_p':>10}"
+            f"{'paper E_rms':>12}{'switch/s':>9}{'p_a max':>9}{'p_b max':>9}  status")
+    lines = [title, head, "-" * len(head)]
+    for name, m, paper in rows:
+        pe = f"{paper[0]:.2f}" if paper else "-"
+        pr = f"{paper[1]:.2f}" if paper else "-"
+        lines.append(f"{name:<19}{m['E_p_mm']:>9.3f}{m['E_rms_mm']:>11.3f}{pe:>10}{pr:>12}"
+                     f"{m['switches_per_s']:>9.1f}{m['p_a_max_Pa'] / 1e5:>8.2f}b"
+                     f"{m['p_b_max_Pa'] / 1e5:>8.2f}b  {m['status']}"
+                     f"{'' if m['theta_in_bounds'] else ' (theta out of bounds!)'}")
+    lines.append("paper: Table 1 of Qian et al. (2014), measured on their rig; the rest is "
+                 "this simulation.")
+    return "\n".join(lines)
+
+
+def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
+    from .closed_loop import simulate_scenario
+    from .controller_config import load_controller, pack
+    from .scenarios import resolve_scenarios
+
+    controller = load_controller(args.controller)
+    if args.scenario is None:
+        raise ExperimentError("--controller needs --scenario S (a name, table1 or all)")
+    scenarios = resolve_scenarios(args.scenario)
+    cfg_vec = pack(controller)
+    results = {}
+    rows = []
+    for sc in tqdm(scenarios, desc="scenarios", unit="scenario", disable=None, leave=False):
+        res = simulate_scenario(controller, sc, plant_cfg, seed=seed, record_truth=bool(args.out),
+                                cfg_vec=cfg_vec)
+        m = res.metrics.as_dict()
+        results[sc.name] = m
+        rows.append((sc.name, m, sc.paper))
+        if args.out:
+            path = _out_path(args.out, sc.name, len(scenarios) > 1)
+            run_meta = {"seed": str(seed), "scenario": sc.name,
+                        "controller": os.path.abspath(args.controller),
+                        "variant": controller.variant}
+            res.recording().save(path, rig=res.plant.rig_metadata(), run=run_meta)
+            m["log"] = str(path)
+        if args.plots:
+            from .plots import plot_closed_loop
+
+            m["plots"] = [str(p) for p in plot_closed_loop(res, args.plots)]
+    if args.json:
+        print_json({"scenarios": results, "controller": args.controller, "seed": seed,
+                    "variant": controller.variant})
+    else:
+        info(format_table(rows, f"{args.controller} ({controller.variant}), seed {seed}"))
+        for _name, m in results.items():
+            if "log" in m:
+                info(f"wrote {m['log']}")
+        if args.plots:
+            info(f"figures in {args.plots}/")
+    return 0 if all(m["status"] == "ok" for m in results.values()) else 1
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``simulate``."""
+    parser = make_parser("simulate", DESCRIPTION, EPILOG)
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--experiment", choices=["identification"],
+                      help="open-loop experiment to run")
+    mode.add_argument("--controller", metavar="C.yaml", help="controller.yaml for a closed loop")
+    parser.add_argument("--scenario", metavar="S", help="scenario name, table1 or all")
+    parser.add_argument("--out", metavar="F.mcap", help="the log to write")
+    parser.add_argument("--plant", metavar="P.yaml", help="plant.yaml (default: the paper's rig)")
+    parser.add_argument("--seed", type=int, metavar="N",
+                        help="sensor-noise seed (default: sim.seed of the plant, 1)")
+    parser.add_argument("--plots", metavar="DIR", help="write PNG figures (closed loop) to DIR")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object on stdout (prose goes to stderr)")
+    args = parser.parse_args(argv)
+
+    plant_cfg = load_plant(args.plant)
+    if args.seed is not None and args.seed < 0:
+        raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
+    seed = plant_cfg.sim.seed if args.seed is None else args.seed
+    plant_cfg = plant_cfg.with_updates({"sim": {"seed": seed}})
+    if args.experiment:
+        if args.scenario or args.plots:
+            raise ExperimentError("--scenario and --plots go with --controller, "
+                                  "not --experiment")
+        return _identification(args, plant_cfg, seed)
+    return _closed_loop(args, plant_cfg, seed)
+
+
 def entry() -> None:  # pragma: no cover - console script
     """Console-script wrapper."""
     run_cli(main)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    entry()

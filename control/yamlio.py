@@ -74,7 +74,7 @@ def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(str(p), "", f"cannot read the file ({exc})") from None
     try:
-        data = yaml.load(text, Loader=_UniqueKeySafeLoader)  # noqa: S506 - a SafeLoader subclass
+        data = yaml.load(text, Loader=_UniqueKeySafeLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -83,7 +83,8 @@ def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(str(p), "", f"expected a mapping at the top level, got {type(data).__name__}")
+        raise ConfigError(str(p), "",
+                          f"expected a mapping at the top level, got {type(data).__name__}")
     return data
 
 

@@ -1,0 +1,75 @@
+"""Closed-loop simulation speed, step-size accuracy and controller step latency.
+
+Prints:
+* simulated seconds per wall second for a 20 s closed-loop run (modified DARC of
+  data/controller-paper.yaml tracking 17.5 sin(pi t) mm on the default plant), after warm-up,
+  best of 5, one core (target: >= 1000);
+* E_p and E_rms of that run at the default step against a 10 us run (target: within 0.005 mm);
+* the latency of one controller step called from Python (`darc.step`), p50 and p99 over
+  20,000 calls (target: p99 <= 20 us), and of the compiled `step_into` inside the loop.
+
+    .venv/bin/python benchmarks/closed_loop.py
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from pneutune.control import darc
+from pneutune.control.closed_loop import simulate_scenario
+from pneutune.control.controller_config import load_controller, pack
+from pneutune.control.plant_config import PlantConfig
+from pneutune.control.scenarios import SCENARIOS, Scenario
+
+PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
+
+
+def main() -> None:
+    """Print the figures."""
+    controller = load_controller(PAPER)
+    cfg = pack(controller)
+    base = SCENARIOS["sine-0.5hz"]
+    sc = Scenario("sine-0.5hz-20s", base.description, 20.0, base.period, base.reference)
+    simulate_scenario(controller, sc, seed=1, cfg_vec=cfg)  # warm-up (compile or load)
+    best = np.inf
+    for _ in range(5):
+        t0 = time.perf_counter()
+        res = simulate_scenario(controller, sc, seed=1, cfg_vec=cfg)
+        best = min(best, time.perf_counter() - t0)
+    print(f"closed loop, 20 s sine-0.5hz: {sc.duration / best:,.0f} simulated s per wall s "
+          f"({best * 1e3:.1f} ms wall, {best / res.sensors.shape[0] * 1e6:.2f} us per 4 ms "
+          f"sample; target >= 1000)")
+
+    ref = simulate_scenario(controller, sc, PlantConfig().with_updates({"sim": {"dt": 1e-5}}),
+                            seed=1, cfg_vec=cfg).metrics
+    m = res.metrics
+    print(f"step accuracy: default dt E_p={m.E_p_mm:.4f} E_rms={m.E_rms_mm:.4f} mm; 10 us "
+          f"E_p={ref.E_p_mm:.4f} E_rms={ref.E_rms_mm:.4f} mm; difference "
+          f"{abs(m.E_p_mm - ref.E_p_mm):.4f} / {abs(m.E_rms_mm - ref.E_rms_mm):.4f} mm "
+          f"(target <= 0.005)")
+
+    state = darc.init_state(cfg, 0.0235, 2.0e5, 2.0e5)
+    rng = np.random.default_rng(0)
+    n = 20000
+    meas = [darc.make_meas(k * 0.004, 0.0235 + 1e-4 * rng.standard_normal(),
+                           2.0e5 + 1e3 * rng.standard_normal(), 2.0e5, 6.0e5,
+                           0.0235 + 0.0175 * np.sin(np.pi * k * 0.004),
+                           0.0175 * np.pi * np.cos(np.pi * k * 0.004),
+                           -0.0175 * np.pi**2 * np.sin(np.pi * k * 0.004)) for k in range(n)]
+    for k in range(200):
+        darc.step(state, meas[k], cfg)
+    lat = np.empty(n)
+    clock = time.perf_counter_ns
+    for k in range(n):
+        t0 = clock()
+        darc.step(state, meas[k], cfg)
+        lat[k] = clock() - t0
+    p50, p99 = np.percentile(lat, [50, 99]) / 1e3
+    print(f"controller step from Python (darc.step): p50 {p50:.2f} us, p99 {p99:.2f} us, "
+          f"max {lat.max() / 1e3:.1f} us (target p99 <= 20 us)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,213 @@
+"""controller.yaml (contract 4): strict loading, errors naming the key, round trip, schema, pack."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from pneutune.control.controller_config import (
+    CFG_GAMMA,
+    CFG_K2,
+    CFG_KM_A,
+    CFG_KM_WQW,
+    CFG_LAYOUT,
+    CFG_LAYOUT_ID,
+    CFG_PWM_DUTY,
+    CFG_PWM_N,
+    CFG_PWM_RATIO,
+    CFG_SIZE,
+    CFG_THETA_0,
+    CFG_VALVE_C,
+    CFG_VARIANT,
+    SCHEMA_PATH,
+    ControllerConfig,
+    load_controller,
+    pack,
+    save_controller,
+    schema_text,
+)
+from pneutune.control.errors import ConfigError
+from pneutune.control.kalman import motion_model
+
+PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
+
+
+def _paper_dict() -> dict[str, Any]:
+    with open(PAPER, encoding="utf-8") as fh:
+        return yaml.safe_load(fh)
+
+
+def test_paper_config_has_the_sec51_values() -> None:
+    """data/controller-paper.yaml holds Sec. 5.1: gains, Γ, θ̇_M, bounds, θ_0, Kalman Q/R in SI
+    (the paper's Q = 3100, R = 1e-4 read in mm: 3.1e-3 m^2/s^4 and 1e-10 m^2)."""
+    cfg = load_controller(PAPER)
+    g = cfg.gains
+    assert (g.k1, g.k2, g.k3, g.h2, g.h3, g.eps2, g.eps3, g.r2, g.r3) == (
+        65.0, 6700.0, 50.0, 10.0, 100.0, 0.05, 250.0, 1.0, 0.1)
+    a = cfg.adaptation
+    assert a.gamma == (0.2, 300.0, 2000.0, 500.0, 100.0, 100.0)
+    assert a.rate_max == (50.0, 500.0, 2000.0, 100.0, 50.0, 50.0)
+    assert a.theta_min == (0.5, -10.0, 2000.0, -50.0, -20.0, -20.0)
+    assert a.theta_max == (5.0, 10.0, 5000.0, 200.0, 20.0, 20.0)
+    assert a.theta_0 == (0.9389, 0.0, 3500.0, 100.0, 0.0, 0.0)
+    assert a.min_ref_speed == 0.001  # Sec. 5.3
+    assert cfg.kalman.motion.Q == pytest.approx(3100 * 1e-6, rel=1e-12)
+    assert cfg.kalman.motion.R == pytest.approx(1e-4 * 1e-6, rel=1e-12)
+    assert cfg.rig.Ts == 0.004 and cfg.rig.pwm_hz == 60.0
+    assert cfg.valves.a_in.C == 8.373e-9 and cfg.valves.b_out.b == 0.18561
+    assert cfg.variant == "modified_darc" and cfg.position_feedback == "measured"
+
+
+def test_round_trip_record_yaml_record(tmp_path: Path) -> None:
+    """STYLE.md 8: record -> controller.yaml -> record unchanged (and dict unchanged)."""
+    cfg = load_controller(PAPER)
+    cfg = cfg.model_copy(update={"provenance": None})
+    out = tmp_path / "c.yaml"
+    save_controller(cfg, out, header="round trip")
+    again = load_controller(out)
+    assert again == cfg
+    assert again.to_dict() == cfg.to_dict()
+    np.testing.assert_array_equal(pack(again), pack(cfg))
+
+
+def test_round_trip_with_provenance(tmp_path: Path) -> None:
+    """Provenance (optional) survives the round trip."""
+    data = _paper_dict()
+    data["provenance"] = {"model_sha256": "ab" * 32, "study": "s", "trial": 3,
+                          "objective": 0.25, "created": "2024-01-01T00:00:00Z", "version": "0.1"}
+    p = tmp_path / "in.yaml"
+    p.write_text(yaml.safe_dump(data), encoding="utf-8")
+    cfg = load_controller(p)
+    save_controller(cfg, tmp_path / "out.yaml")
+    assert load_controller(tmp_path / "out.yaml") == cfg
+
+
+def _set(data: dict, path: str, value: Any) -> dict:
+    data = copy.deepcopy(data)
+    keys = path.split(".")
+    node = data
+    for k in keys[:-1]:
+        node = node[k]
+    if value is _DELETE:
+        del node[keys[-1]]
+    else:
+        node[keys[-1]] = value
+    return data
+
+
+_DELETE = object()
+
+BAD = [
+    # (what, key path to change, new value, key the error must name, text in the message)
+    ("unknown top-level key", "gain", {"k1": 1.0}, "gain", "unknown key"),
+    ("unknown nested key", "gains.k4", 1.0, "gains.k4", "unknown key"),
+    ("misspelt valve", "valves.a_inn", {"C": 1e-9, "b": 0.2}, "valves.a_inn", "unknown key"),
+    ("missing block", "kalman", _DELETE, "kalman", "missing"),
+    ("missing key", "gains.k1", _DELETE, "gains.k1", "missing"),
+    ("wrong type", "gains.k2", "fast", "gains.k2", "number"),
+    ("string 6.0e5 (YAML 1.1)", "rig.p_s", "6.0e5", "rig.p_s", "6.0e+5"),
+    ("bool for a float", "gains.k3", True, "gains.k3", "number"),
+    ("out of range, k1 <= 0", "gains.k1", -1.0, "gains.k1", "greater than 0"),
+    ("out of range, Kalman R", "kalman.motion.R", 0.0, "kalman.motion.R", "greater than 0"),
+    ("negative gamma", "adaptation.gamma", [0.2, -300.0, 2000.0, 500.0, 100.0, 100.0],
+     "adaptation.gamma[1]", "greater than or equal to 0"),
+    ("theta_min >= theta_max", "adaptation.theta_min", [0.5, -10.0, 6000.0, -50.0, -20.0, -20.0],
+     "adaptation", "theta_min < theta_0 < theta_max"),
+    ("theta_0 on a bound", "adaptation.theta_0", [0.5, 0.0, 3500.0, 100.0, 0.0, 0.0],
+     "adaptation", "M (index 0)"),
+    ("vector too short", "adaptation.rate_max", [50.0, 500.0, 2000.0, 100.0, 50.0],
+     "adaptation.rate_max", "expected 6 values"),
+    ("vector too long", "adaptation.theta_0", [0.9, 0.0, 3500.0, 100.0, 0.0, 0.0, 1.0],
+     "adaptation.theta_0", "expected 6 values"),
+    ("non-finite", "gains.k2", float("nan"), "gains.k2", "finite"),
+    ("pwm not monotone in ratio", "pwm.ratio", [0.0, 0.5, 0.4, 1.0], "pwm",
+     "non-decreasing"),
+    ("pwm not monotone in duty", "pwm.duty", [0.0, 0.6, 0.5, 1.0], "pwm", "non-decreasing"),
+    ("pwm not from (0, 0)", "pwm.ratio", [0.1, 0.2, 0.5, 1.0], "pwm", "(0, 0)"),
+    ("pwm ratio above 1", "pwm.ratio", [0.0, 0.2, 0.5, 1.2], "pwm.ratio[3]",
+     "less than or equal to 1"),
+    ("pwm lengths differ", "pwm.ratio", [0.0, 0.5, 1.0], "pwm", "same length"),
+    ("bad variant", "variant", "fancy_darc", "variant", "modified_darc"),
+    ("bad position_feedback", "position_feedback", "raw", "position_feedback", "measured"),
+    ("bad schema", "schema", "pneutune.controller/2", "schema", "pneutune.controller/1"),
+    ("limits x_max <= x_min", "limits.x_max", -0.01, "limits", "x_max > x_min"),
+    ("rig rule", "rig.A_b", 9e-3, "rig", "A_b <= A_a"),
+    ("pid negative gain", "pid.kp", -1.0, "pid.kp", "greater than or equal to 0"),
+]
+
+
+@pytest.mark.parametrize(("what", "path", "value", "key", "text"), BAD,
+                         ids=[b[0] for b in BAD])
+def test_bad_configs_raise_config_error_naming_the_key(tmp_path: Path, what: str, path: str,
+                                                       value: Any, key: str, text: str) -> None:
+    """Each bad controller.yaml raises ConfigError naming the key path and the rule."""
+    data = _paper_dict()
+    data["pwm"] = {"duty": [0.0, 0.3, 0.6, 1.0], "ratio": [0.0, 0.3, 0.7, 1.0]}
+    data = _set(data, path, value)
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(data), encoding="utf-8")
+    with pytest.raises(ConfigError) as exc:
+        load_controller(p)
+    assert exc.value.key == key, str(exc.value)
+    assert text in exc.value.message, str(exc.value)
+    assert str(p) in str(exc.value)
+
+
+def test_literal_6_0e5_in_yaml_text(tmp_path: Path) -> None:
+    """DESIGN.md YAML note: `p_s: 6.0e5` is a string in YAML 1.1; the loader says so."""
+    text = PAPER.read_text(encoding="utf-8").replace("p_s: 6.0e+5", "p_s: 6.0e5")
+    p = tmp_path / "c.yaml"
+    p.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"rig\.p_s: expected a number, got the string"):
+        load_controller(p)
+
+
+def test_duplicate_key_rejected(tmp_path: Path) -> None:
+    """A key given twice is an error (yamlio), not a silent overwrite."""
+    text = PAPER.read_text(encoding="utf-8") + "variant: pid\n"
+    p = tmp_path / "c.yaml"
+    p.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError, match="duplicate key"):
+        load_controller(p)
+
+
+def test_committed_schema_is_current() -> None:
+    """control/schemas/controller.schema.json == the models' schema. Regenerate with
+    `python -m pneutune.control.controller_config`."""
+    assert SCHEMA_PATH.read_text(encoding="utf-8") == schema_text()
+    schema = json.loads(schema_text())
+    assert schema["additionalProperties"] is False
+    assert {"position_feedback", "pid", "provenance"} <= set(schema["properties"])
+
+
+def test_pack_layout() -> None:
+    """pack(): values at the documented CFG_* indices, Eq. (34) matrices precomputed."""
+    cfg = load_controller(PAPER)
+    v = pack(cfg)
+    assert v.shape == (CFG_SIZE,) and v.dtype == np.float64
+    assert v[CFG_LAYOUT] == CFG_LAYOUT_ID
+    assert v[CFG_VARIANT] == 0 and v[CFG_K2] == 6700.0
+    np.testing.assert_array_equal(v[CFG_GAMMA:CFG_GAMMA + 6], cfg.adaptation.gamma)
+    np.testing.assert_array_equal(v[CFG_THETA_0:CFG_THETA_0 + 6], cfg.adaptation.theta_0)
+    np.testing.assert_array_equal(v[CFG_VALVE_C:CFG_VALVE_C + 4], [8.373e-9] * 4)
+    A, W, _ = motion_model(0.004)
+    np.testing.assert_allclose(v[CFG_KM_A:CFG_KM_A + 9].reshape(3, 3), A, rtol=1e-15)
+    np.testing.assert_allclose(v[CFG_KM_WQW:CFG_KM_WQW + 9].reshape(3, 3),
+                               3.1e-3 * np.outer(W, W), rtol=1e-12)
+    m = int(v[CFG_PWM_N])
+    assert m == len(cfg.pwm.duty)
+    np.testing.assert_array_equal(v[CFG_PWM_DUTY:CFG_PWM_DUTY + m], cfg.pwm.duty)
+    np.testing.assert_array_equal(v[CFG_PWM_RATIO:CFG_PWM_RATIO + m], cfg.pwm.ratio)
+
+
+def test_model_is_frozen() -> None:
+    """Records are frozen (STYLE.md 8)."""
+    cfg = load_controller(PAPER)
+    with pytest.raises(Exception, match="frozen"):
+        cfg.variant = "pid"  # type: ignore[misc]
+    assert isinstance(cfg, ControllerConfig)
