@@ -16,6 +16,8 @@ $(STAMP): pyproject.toml
 ## demo: the workbench loop on the simulated rig (grows with each issue: log -> identify -> tune -> deploy)
 demo: $(STAMP)
 	$(BIN)/simulate --experiment identification --seed $(SEED) --out reports/demo/run.mcap
+	$(BIN)/simulate --controller data/controller-paper.yaml --scenario all --seed $(SEED) \
+		--plots reports/demo/figures
 
 ## test: the default test suite (slow tests excluded)
 test: $(STAMP)

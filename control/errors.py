@@ -79,5 +79,14 @@ class MissingMetadataError(LogError):
     """The ``rig`` or ``run`` metadata record is missing or incomplete."""
 
 
+class LogSchemaError(LogError):
+    """A record of the log does not match contract 1.
+
+    A channel of a contract topic is not JSON, a message lacks a field or has one its schema
+    does not know, a value has the wrong type, a metadata record has an unknown key or another
+    schema version.
+    """
+
+
 class ExperimentError(PneutuneError, ValueError):
     """An experiment or scenario cannot be run as requested."""
