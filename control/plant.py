@@ -188,22 +188,26 @@ def _stick_limits(p: np.ndarray, x: float) -> tuple[float, float]:
 
 
 @njit(cache=True)
-def _velocity_zero(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float,
-                   d: float, p_s: float, f_ext: float, h: float, v1: float) -> float:
-    """Fraction of the step ``h`` at which the RK4 solution's velocity reaches zero.
+def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float, d: float,
+            p_s: float, f_ext: float, h: float, comp: int, target: float, end: float) -> float:
+    """Fraction of the step ``h`` at which the RK4 solution's component ``comp`` (0: x, 1: v)
+    reaches ``target``; ``end`` is its value after the whole step.
 
     Regula falsi (Illinois variant) on the RK4 map, so the instant is as accurate as the
-    integration itself: the velocity decays through the stiff viscous mode (b_v / M ~ 3e3 1/s)
-    and a straight-line guess would be off by a sizeable part of the step.
+    integration itself: a straight-line guess is poor when the piston accelerates towards a
+    stop, or when the velocity decays through the stiff viscous mode (b_v / M ~ 3e3 1/s).
     """
-    a, fa = 0.0, v
-    b, fb = 1.0, v1
+    start = x if comp == 0 else v
+    a, fa = 0.0, start - target
+    b, fb = 1.0, end - target
     side = 0
     c = 1.0
-    for _ in range(30):
+    tol = 1.0e-12 if comp == 0 else 1.0e-10
+    for _ in range(40):
         c = (a * fb - b * fa) / (fb - fa)
-        _, fc, _, _ = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, c * h)
-        if abs(fc) < 1.0e-10 or (b - a) * h < 1.0e-12:
+        xc, vc, _, _ = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, c * h)
+        fc = (xc if comp == 0 else vc) - target
+        if abs(fc) < tol or (b - a) * h < 1.0e-13:
             break
         if fc * fb > 0.0:
             b, fb = c, fc
@@ -245,8 +249,10 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
                 continue
             # break-away inside the step: locate it, integrate to it, start sliding
             thr = hi if f1 > hi else lo
-            frac = (thr - f0) / (f1 - f0) if f1 != f0 else 1.0
-            frac = min(max(frac, 0.0), 1.0)
+            if f0 > hi or f0 < lo or f1 == f0:
+                frac = 0.0  # already beyond the limit at the start of the step
+            else:
+                frac = min(max((thr - f0) / (f1 - f0), 0.0), 1.0)
             sub = frac * step
             if sub > 1.0e-12:
                 x1, v1, pa, pb = _rk4(p, s, x, v, pa, pb, True, 0.0, p_s, f_ext, sub)
@@ -266,12 +272,12 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
             continue
         # an event inside the step: the earlier of the stop contact and the velocity zero
         frac = 1.0
+        edge = xmax
         if hit_stop:
             edge = xmax if x1 > xmax else xmin
-            if x1 != x:
-                frac = (edge - x) / (x1 - x)
+            frac = _locate(p, s, x, v, pa, pb, d, p_s, f_ext, step, 0, edge, x1)
         if reversed_ and v1 != v:
-            fv = _velocity_zero(p, s, x, v, pa, pb, d, p_s, f_ext, step, v1)
+            fv = _locate(p, s, x, v, pa, pb, d, p_s, f_ext, step, 1, 0.0, v1)
             if fv < frac:
                 frac = fv
                 hit_stop = False
@@ -280,9 +286,11 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
         if sub > 1.0e-12:
             x, v, pa, pb = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, sub)
         remaining -= sub
-        if x >= xmax:
+        if hit_stop:
+            x = edge  # located to 1e-12 m; land exactly on the stop
+        elif x > xmax:
             x = xmax
-        elif x <= xmin:
+        elif x < xmin:
             x = xmin
         v = 0.0
         f_at = applied_force(p, pa, pb, f_ext)

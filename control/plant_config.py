@@ -11,7 +11,7 @@ import itertools
 import os
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from .constants import PLANT_SCHEMA, RIG_KEYS, VALVES
 from .errors import ConfigError
@@ -46,16 +46,30 @@ class RigConfig(_Strict):
         "latched: it acts from the next PWM period start.",
     )
 
-    @model_validator(mode="after")
-    def _check(self) -> RigConfig:
-        if not self.x_max > self.x_min:
-            raise ValueError(f"x_max > x_min must hold, got x_min={self.x_min}, x_max={self.x_max}")
-        if self.A_b > self.A_a:
+    @field_validator("x_max")
+    @classmethod
+    def _x_max_above_x_min(cls, value: float, info: ValidationInfo) -> float:
+        x_min = info.data.get("x_min")
+        if x_min is not None and not value > x_min:
+            raise ValueError(f"x_max > x_min must hold, got x_min={x_min}, x_max={value}")
+        return value
+
+    @field_validator("A_b")
+    @classmethod
+    def _A_b_below_A_a(cls, value: float, info: ValidationInfo) -> float:
+        A_a = info.data.get("A_a")
+        if A_a is not None and value > A_a:
             raise ValueError(f"A_b <= A_a must hold (rod area A_a - A_b >= 0), "
-                             f"got A_a={self.A_a}, A_b={self.A_b}")
-        if not self.p_s > self.p0:
-            raise ValueError(f"p_s > p0 must hold, got p0={self.p0}, p_s={self.p_s}")
-        return self
+                             f"got A_a={A_a}, A_b={value}")
+        return value
+
+    @field_validator("p_s")
+    @classmethod
+    def _p_s_above_p0(cls, value: float, info: ValidationInfo) -> float:
+        p0 = info.data.get("p0")
+        if p0 is not None and not value > p0:
+            raise ValueError(f"p_s > p0 must hold, got p0={p0}, p_s={value}")
+        return value
 
     @property
     def A_r(self) -> float:
@@ -83,11 +97,13 @@ class FrictionConfig(_Strict):
     alpha: float = Field(2.0, gt=0.0, le=10.0, description="Stribeck exponent [-]")
     b_v: float = Field(3500.0, ge=0.0, le=1.0e5, description="Viscous coefficient [N s/m]")
 
-    @model_validator(mode="after")
-    def _check(self) -> FrictionConfig:
-        if self.F_S < self.F_C:
-            raise ValueError(f"F_S >= F_C must hold, got F_S={self.F_S}, F_C={self.F_C}")
-        return self
+    @field_validator("F_C")
+    @classmethod
+    def _F_C_below_F_S(cls, value: float, info: ValidationInfo) -> float:
+        F_S = info.data.get("F_S")
+        if F_S is not None and value > F_S:
+            raise ValueError(f"F_C <= F_S must hold, got F_S={F_S}, F_C={value}")
+        return value
 
 
 class ValveConfig(_Strict):
@@ -105,13 +121,14 @@ class ValveConfig(_Strict):
     delay_off: float = Field(3.0e-3, ge=0.0, le=0.05, description="Command-off to closed [s]")
     min_pulse: float = Field(1.5e-3, ge=0.0, le=0.05, description="Shortest pulse that opens [s]")
 
-    @model_validator(mode="after")
-    def _check(self) -> ValveConfig:
-        if self.min_pulse > self.delay_on:
+    @field_validator("min_pulse")
+    @classmethod
+    def _min_pulse_within_delay_on(cls, value: float, info: ValidationInfo) -> float:
+        delay_on = info.data.get("delay_on")
+        if delay_on is not None and value > delay_on:
             raise ValueError(f"min_pulse <= delay_on must hold (the minimum pulse is part of the "
-                             f"opening delay), got min_pulse={self.min_pulse}, "
-                             f"delay_on={self.delay_on}")
-        return self
+                             f"opening delay), got min_pulse={value}, delay_on={delay_on}")
+        return value
 
 
 class ValvesConfig(_Strict):
@@ -151,14 +168,16 @@ class DisturbanceConfig(_Strict):
             return tuple(tuple(v) if isinstance(v, list) else v for v in value)
         return value
 
-    @model_validator(mode="after")
-    def _check(self) -> DisturbanceConfig:
-        times = [t for t, _ in self.force_steps]
+    @field_validator("force_steps")
+    @classmethod
+    def _check_steps(cls, value: tuple[tuple[float, float], ...]
+                     ) -> tuple[tuple[float, float], ...]:
+        times = [t for t, _ in value]
         if any(t < 0.0 for t in times):
             raise ValueError(f"force_steps times must be >= 0 s, got {times}")
         if any(b <= a for a, b in itertools.pairwise(times)):
             raise ValueError(f"force_steps times must increase strictly, got {times}")
-        return self
+        return value
 
 
 class SensorsConfig(_Strict):

@@ -50,6 +50,22 @@ class PlantParams:
     config: PlantConfig
 
 
+def friction_stiffness(cfg: PlantConfig) -> float:
+    """Largest |dF_f/dv| of the sliding friction of Eq. (2) [N s/m].
+
+    The velocity mode of Eq. (1) has eigenvalue -(dF_f/dv)/M: -b_v/M where friction is viscous,
+    and up to ((F_S - F_C) max|dg/dv| - b_v)/M > 0 on the falling Stribeck branch
+    (g = exp(-(v/v_s)^alpha)). The integrator keeps ``dt * stiffness / M <= 1.4`` (RK4's
+    stability limit is 2.79) so that both stay resolved.
+    """
+    f = cfg.friction
+    v = f.v_s * np.logspace(-3.0, 1.5, 2000)
+    r = v / f.v_s
+    slope = f.alpha / f.v_s * r ** (f.alpha - 1.0) * np.exp(-(r**f.alpha))
+    stribeck = (f.F_S - f.F_C) * float(np.max(slope))
+    return max(f.b_v, stribeck - f.b_v, 1.0e-9)
+
+
 def pack_plant(cfg: PlantConfig) -> PlantParams:
     """Pack a validated plant configuration into a :class:`PlantParams`.
 
@@ -78,9 +94,7 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     v[P_LEAKC] = cfg.leak.C
     d = cfg.disturbance
     v[P_FN], v[P_DA], v[P_DB] = d.F_n, d.D_a, d.D_b
-    # largest RK4 step: the configured dt, capped so that dt * b_v / M <= 1.4 (the viscous
-    # velocity mode has eigenvalue -b_v/M; RK4's stability limit is 2.79)
-    v[P_DT] = min(cfg.sim.dt, 1.4 * cfg.total_mass / f.b_v) if f.b_v > 0.0 else cfg.sim.dt
+    v[P_DT] = min(cfg.sim.dt, 1.4 * cfg.total_mass / friction_stiffness(cfg))
     s = cfg.sensors
     v[P_XNOISE], v[P_XSTEP], v[P_PNOISE] = s.x_noise, s.x_step, s.p_noise
     v.setflags(write=False)

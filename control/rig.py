@@ -66,7 +66,8 @@ class SimRig:
         The plant.
     x0 : float, optional
         Initial position [m]; default mid-stroke. The piston starts at rest with the chamber
-        pressures of :func:`rest_pressures` (force balance, B at ambient) unless ``p0`` is given.
+        pressures of :func:`rest_pressures` (force balance, B at ambient) unless
+        ``pressures0`` is given.
     pressures0 : (float, float), optional
         Initial (p_a, p_b) [Pa abs].
     seed : int, optional

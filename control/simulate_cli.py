@@ -61,6 +61,14 @@ def _sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
+def _plant_meta(plant: str | None) -> dict[str, str]:
+    """The plant as ``run`` metadata: the path as given and its content hash (not the absolute
+    path, so that the same plant gives the same log bytes wherever it lies)."""
+    if plant is None:
+        return {"plant": "<defaults>"}
+    return {"plant": plant, "plant_sha256": _sha256(plant)}
+
+
 def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
     from .identification_run import simulate_identification
 
@@ -75,8 +83,7 @@ def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
 
     rec = simulate_identification(plant_cfg, seed=seed, progress=progress)
     bar.close()
-    run_meta = {"seed": str(seed), "experiment": "identification",
-                "plant": os.path.abspath(args.plant) if args.plant else "<defaults>"}
+    run_meta = {"seed": str(seed), "experiment": "identification", **_plant_meta(args.plant)}
     rec.save(args.out, rig=plant_cfg.rig_metadata(), run=run_meta)
     size = os.path.getsize(args.out)
     summary = {
@@ -138,9 +145,9 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
         rows.append((sc.name, m, sc.paper))
         if args.out:
             path = _out_path(args.out, sc.name, len(scenarios) > 1)
-            run_meta = {"seed": str(seed), "scenario": sc.name,
-                        "controller": os.path.abspath(args.controller),
-                        "variant": controller.variant}
+            run_meta = {"seed": str(seed), "scenario": sc.name, "controller": args.controller,
+                        "controller_sha256": _sha256(args.controller),
+                        "variant": controller.variant, **_plant_meta(args.plant)}
             res.recording().save(path, rig=res.plant.rig_metadata(), run=run_meta)
             m["log"] = str(path)
         if args.plots:
