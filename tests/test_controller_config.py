@@ -136,7 +136,7 @@ BAD = [
     ("bad position_feedback", "position_feedback", "raw", "position_feedback", "measured"),
     ("bad schema", "schema", "pneutune.controller/2", "schema", "pneutune.controller/1"),
     ("limits x_max <= x_min", "limits.x_max", -0.01, "limits", "x_max > x_min"),
-    ("rig rule", "rig.A_b", 9e-3, "rig", "A_b <= A_a"),
+    ("rig rule", "rig.A_b", 9e-3, "rig.A_b", "A_b <= A_a"),
     ("pid negative gain", "pid.kp", -1.0, "pid.kp", "greater than or equal to 0"),
 ]
 
