@@ -27,10 +27,9 @@ import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from .constants import CONTROLLER_SCHEMA, THETA_NAMES, VALVES
-from .errors import ConfigError
 from .kalman import force_model, motion_model, process_cov
 from .plant_config import RigConfig
-from .yamlio import load_yaml_mapping, validate_model, write_yaml
+from .yamlio import load_config, write_yaml
 
 #: Controller variants, in the order of their integer codes (``cfg[CFG_VARIANT]``).
 VARIANTS: tuple[str, ...] = ("modified_darc", "original_darc", "direct_diff", "pid")
@@ -283,11 +282,7 @@ def load_controller(path: str | os.PathLike[str]) -> ControllerConfig:
         Bad YAML, unknown or missing key, wrong type (including ``6.0e5`` read as a string),
         out-of-range value, inconsistent bounds or PWM curve; names the file and key path.
     """
-    data = load_yaml_mapping(path)
-    if "schema" in data and data["schema"] != CONTROLLER_SCHEMA:
-        raise ConfigError(str(path), "schema",
-                          f"expected {CONTROLLER_SCHEMA!r}, got {data['schema']!r}")
-    return validate_model(ControllerConfig, data, str(path))
+    return load_config(path, ControllerConfig, CONTROLLER_SCHEMA)
 
 
 def save_controller(cfg: ControllerConfig, path: str | os.PathLike[str],

@@ -14,8 +14,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from .constants import PLANT_SCHEMA, RIG_KEYS, VALVES
-from .errors import ConfigError
-from .yamlio import deep_merge, load_yaml_mapping, validate_model
+from .yamlio import deep_merge, load_config, validate_model
 
 
 class _Strict(BaseModel):
@@ -273,8 +272,4 @@ def load_plant(path: str | os.PathLike[str] | None = None) -> PlantConfig:
     """
     if path is None:
         return PlantConfig()
-    data = load_yaml_mapping(path)
-    if "schema" in data and data["schema"] != PLANT_SCHEMA:
-        raise ConfigError(str(path), "schema", f"expected {PLANT_SCHEMA!r}, got {data['schema']!r}")
-    merged = deep_merge(PlantConfig().to_dict(), data)
-    return validate_model(PlantConfig, merged, str(path))
+    return load_config(path, PlantConfig, PLANT_SCHEMA, defaults=PlantConfig().to_dict())

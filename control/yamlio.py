@@ -170,6 +170,35 @@ def validate_model(model: type[M], data: Mapping[str, Any], file: str) -> M:
         raise validation_error(file, exc) from None
 
 
+def load_config(path: str | os.PathLike[str], model: type[M], schema: str,
+                defaults: Mapping[str, Any] | None = None) -> M:
+    """Load a configuration file: YAML mapping, schema id check, optional merge, validation.
+
+    Parameters
+    ----------
+    path : path-like
+        The file.
+    model : pydantic model class
+        What the document must validate as.
+    schema : str
+        The expected ``schema`` value (e.g. ``pneutune.plant/1``); a file may omit the key.
+    defaults : mapping, optional
+        Plain-data defaults the file is deep-merged over (plant.yaml); None: the file must be
+        complete.
+
+    Raises
+    ------
+    ConfigError
+        Bad YAML, a different schema, or a validation failure, naming the file and key.
+    """
+    data = load_yaml_mapping(path)
+    if "schema" in data and data["schema"] != schema:
+        raise ConfigError(str(path), "schema", f"expected {schema!r}, got {data['schema']!r}")
+    if defaults is not None:
+        data = deep_merge(defaults, data)
+    return validate_model(model, data, str(path))
+
+
 class _Dumper(yaml.SafeDumper):
     """SafeDumper writing floats that YAML 1.1 reads back as floats (exponent with a sign)."""
 
