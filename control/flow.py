@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from numba import njit, vectorize
 
 from .constants import RHO0, T_REF
 
@@ -78,3 +78,9 @@ def signed_flow(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
     if p_1 >= p_2:
         return iso6358_flow(C, b, p_1, p_2, T)
     return -iso6358_flow(C, b, p_2, p_1, T)
+
+
+@vectorize(["float64(float64, float64, float64, float64, float64)"], cache=True)
+def signed_flow_array(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
+    """:func:`signed_flow` as a numpy ufunc (broadcasts over arrays), for the identifiers."""
+    return signed_flow(C, b, p_1, p_2, T)

@@ -8,8 +8,10 @@ on any rig, simulated or real. Segments, in order, each labelled on ``/experimen
 1. ``rest``: valves closed, piston at rest (sensor noise, leaks, drift).
 2. ``valve`` tests for chamber A with the piston held against the B-side end stop:
    ``prepare`` (a_in + b_out fully open drive the piston to x_max; b_out stays open so B stays at
-   ambient and the force ``(p_a - p0) A_a >= 0`` keeps the piston on the stop), then for each
-   duty of the sweep a ``valve_discharge`` through a_out and a ``valve_charge`` through a_in.
+   ambient and the force ``(p_a - p0) A_a >= 0`` keeps the piston on the stop), then
+   ``FULL_DUTY_CYCLES`` full-duty cycles and, for each duty of the sweep, a ``valve_discharge``
+   through a_out and a ``valve_charge`` through a_in; then the chamber, charged to supply, rests
+   2 s with its valves shut (leak and the constant term D of Eq. 5).
    Each valve thus charges or discharges a fixed, known volume at full duty and over a sweep of
    duties: this gives C, b and the PWM curve.
 3. The same for chamber B against the A-side end stop (a_out open, b_in / b_out swept).
@@ -34,6 +36,9 @@ from .rig import Rig
 
 #: Duty sweep of the valve tests (1 first: the full-duty charge/discharge).
 DEFAULT_DUTIES: tuple[float, ...] = (1.0, 0.7, 0.5, 0.35, 0.25, 0.18, 0.12, 0.08, 0.05)
+#: Full-duty charge/discharge cycles per chamber: b (the critical pressure ratio) shows only in
+#: the shape of the subsonic part of a charge or a vent, so it is worth a few repetitions.
+FULL_DUTY_CYCLES: int = 4
 #: Ramp speeds of the friction segments [m/s].
 DEFAULT_SPEEDS: tuple[float, ...] = (0.003, 0.006, 0.012, 0.025, 0.05, 0.1)
 #: Sine frequencies [Hz] and cycles of the acceleration segments.
@@ -114,14 +119,24 @@ def _valve_block(chamber: str, duties: Sequence[float]) -> list[Segment]:
         hold, fill, vent, stop = "a_out", "b_in", "b_out", "x_min"
     segs = [Segment(f"prepare:{chamber}", "prepare", 1.5,
                     {"chamber": chamber, "end_stop": stop, "open": [fill, hold]}, prep)]
-    for u in duties:
+    sweep = [1.0] * (FULL_DUTY_CYCLES - 1) + list(duties)
+    for rep, u in enumerate(sweep):
         t_half = min(max(0.5 / u, 0.5), 2.0)
+        tag = f"{u:.2f}" if rep >= FULL_DUTY_CYCLES - 1 else f"{u:.2f}#{rep + 1}"
         for kind, valve in (("valve_discharge", vent), ("valve_charge", fill)):
             segs.append(Segment(
-                f"{kind}:{valve}:{u:.2f}", kind, t_half,
+                f"{kind}:{valve}:{tag}", kind, t_half,
                 {"chamber": chamber, "valve": valve, "duty": u, "held_open": hold,
                  "end_stop": stop},
                 _duties(**{valve: u, hold: 1.0})))
+    # valves shut with the chamber at supply pressure: what still changes the pressure is the
+    # seal leak and the constant term D of Eq. (5)
+    segs.append(Segment(f"valve_charge:{fill}:hold", "valve_charge", 1.0,
+                        {"chamber": chamber, "valve": fill, "duty": 1.0, "held_open": hold,
+                         "end_stop": stop}, _duties(**{fill: 1.0, hold: 1.0})))
+    segs.append(Segment(f"rest:{chamber}:pressurised", "rest", 2.0,
+                        {"chamber": chamber, "held_open": hold, "end_stop": stop},
+                        _duties(**{hold: 1.0})))
     segs.append(Segment(f"valve_discharge:{vent}:final", "valve_discharge", 1.0,
                         {"chamber": chamber, "valve": vent, "duty": 1.0, "held_open": hold,
                          "end_stop": stop}, _duties(**{vent: 1.0, hold: 1.0})))
@@ -184,7 +199,7 @@ def identification_protocol(x_min: float, x_max: float,
     stroke = x_max - x_min
     mid = 0.5 * (x_min + x_max)
     lo, hi = x_min + 0.15 * stroke, x_max - 0.15 * stroke
-    segs = [Segment("rest:start", "rest", 1.0, {}, np.zeros(4))]
+    segs = [Segment("rest:start", "rest", 2.0, {}, np.zeros(4))]
     segs += _valve_block("a", duties)
     segs += _valve_block("b", duties)
     segs.append(_hold(lo, 1.5, "hold:start_friction"))
@@ -198,7 +213,7 @@ def identification_protocol(x_min: float, x_max: float,
     for freq, cycles in sines:
         segs.append(_sine(mid, 0.3 * stroke, freq, cycles))
     segs.append(_hold(mid, 1.0, "hold:end"))
-    segs.append(Segment("rest:end", "rest", 1.0, {}, np.zeros(4)))
+    segs.append(Segment("rest:end", "rest", 2.0, {}, np.zeros(4)))
     return segs
 
 

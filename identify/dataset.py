@@ -1,0 +1,188 @@
+"""A run log made ready for identification: data checks first, then aligned arrays.
+
+:func:`load_dataset` reads an MCAP run log (contract 1), checks it (required topics and
+metadata, finite values, monotonic time — by the reader; regular sampling, plausible units,
+excitation — here) and returns a :class:`Dataset` of aligned per-sample arrays in SI units.
+Nothing here uses ``/sim/truth`` or ``/experiment/segment``: a real rig's closed-loop log has
+neither.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from pneutune.control.constants import VALVES
+from pneutune.control.errors import LogError
+from pneutune.control.plant_config import RigConfig
+from pneutune.control.runlog import RunLog, read_run_log
+
+#: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (issue 4's unit check).
+P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5
+#: How far outside the stroke a position reading may be before it is implausible [m].
+X_MARGIN = 2.0e-3
+#: Savitzky-Golay window (samples) and order for velocity estimates.
+SG_WINDOW, SG_ORDER = 11, 3
+
+
+class IdentificationError(LogError):
+    """The log cannot support identification (implausible units, too little excitation)."""
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """Aligned per-sample arrays of a run log, SI units.
+
+    Attributes
+    ----------
+    path, sha256 : str
+        The log and its content hash.
+    rig : RigConfig
+        The ``rig`` metadata, validated.
+    t : ndarray (N,)
+        Sample times [s].
+    x, p_a, p_b, p_s : ndarray (N,)
+        Sensors [m, Pa abs].
+    u : ndarray (N, 4)
+        Commanded duties of a_in, a_out, b_in, b_out, held from each sample to the next.
+    v : ndarray (N,)
+        Velocity [m/s] by a Savitzky-Golay derivative of x (non-causal, no phase lag).
+    """
+
+    path: str
+    sha256: str
+    rig: RigConfig
+    t: np.ndarray
+    x: np.ndarray
+    p_a: np.ndarray
+    p_b: np.ndarray
+    p_s: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return self.t.shape[0]
+
+    @property
+    def Ts(self) -> float:
+        """Sampling period [s]."""
+        return self.rig.Ts
+
+    @property
+    def duration(self) -> float:
+        """Length of the log [s]."""
+        return float(self.t[-1] - self.t[0]) + self.Ts if self.n else 0.0
+
+    @property
+    def F_p(self) -> np.ndarray:
+        """Pressure force A_a p_a - A_b p_b - p0 A_r [N] (Eq. 8 with the p0 A_r correction)."""
+        r = self.rig
+        return r.A_a * self.p_a - r.A_b * self.p_b - r.p0 * (r.A_a - r.A_b)
+
+    def volumes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Chamber volumes V_a, V_b of Eq. (6) [m^3]."""
+        r = self.rig
+        x = np.clip(self.x, r.x_min, r.x_max)
+        return r.V0a + r.A_a * (x - r.x_min), r.V0b + r.A_b * (r.x_max - x)
+
+    def split(self, holdout: float) -> tuple[np.ndarray, np.ndarray]:
+        """Boolean masks (fit, held out): the last ``holdout`` fraction is held out."""
+        k = round(self.n * (1.0 - holdout))
+        fit = np.zeros(self.n, dtype=bool)
+        fit[:k] = True
+        return fit, ~fit
+
+
+def _rig_from_log(log: RunLog) -> RigConfig:
+    from pydantic import ValidationError
+
+    from pneutune.control.yamlio import validation_error
+
+    try:
+        return RigConfig.model_validate(dict(log.rig))
+    except ValidationError as exc:
+        err = validation_error(log.path, exc, prefix="metadata rig")
+        raise IdentificationError(log.path, f"{err.key}: {err.message}") from None
+
+
+def check_plausible(log: RunLog, rig: RigConfig) -> None:
+    """Unit and range checks that the reader does not do.
+
+    Raises
+    ------
+    IdentificationError
+        Pressures outside about 0.5-12 bar absolute (gauge pressure or bar instead of Pa?),
+        positions outside the stroke (mm instead of m?), duties outside 0..1, irregular
+        sampling, sensors and valves not on the same samples.
+    """
+    s = log["/rig/sensors"]
+    v = log["/rig/valves"]
+    name = log.path
+    for col in ("p_a", "p_b", "p_s"):
+        lo, hi = float(s[col].min()), float(s[col].max())
+        if lo < P_MIN_PLAUSIBLE or hi > P_MAX_PLAUSIBLE:
+            raise IdentificationError(
+                name, f"/rig/sensors.{col} spans {lo:.6g}..{hi:.6g} Pa; expected absolute "
+                f"pressures in Pa between {P_MIN_PLAUSIBLE:.3g} and {P_MAX_PLAUSIBLE:.3g} "
+                f"(gauge pressures or bar instead of Pa absolute?)")
+    xlo, xhi = float(s["x"].min()), float(s["x"].max())
+    if xlo < rig.x_min - X_MARGIN or xhi > rig.x_max + X_MARGIN:
+        raise IdentificationError(
+            name, f"/rig/sensors.x spans {xlo:.6g}..{xhi:.6g} m, outside the stroke "
+            f"[{rig.x_min}, {rig.x_max}] m of the rig metadata (mm instead of m?)")
+    for col in v.columns:
+        lo, hi = float(v[col].min()), float(v[col].max())
+        if lo < -1e-9 or hi > 1.0 + 1e-9:
+            raise IdentificationError(
+                name, f"/rig/valves.{col} spans {lo:.6g}..{hi:.6g}; duties must be within 0..1")
+    t = s.index.to_numpy()
+    if len(t) < 100:
+        raise IdentificationError(name, f"/rig/sensors has {len(t)} samples; identification "
+                                  f"needs at least 100 (0.4 s at Ts = 4 ms), ideally a whole "
+                                  f"identification run")
+    dt = np.diff(t)
+    if np.any(np.abs(dt - rig.Ts) > 0.25 * rig.Ts):
+        k = int(np.argmax(np.abs(dt - rig.Ts) > 0.25 * rig.Ts))
+        raise IdentificationError(
+            name, f"/rig/sensors is not sampled every rig.Ts = {rig.Ts} s: samples at "
+            f"t = {t[k]:.6f} s and {t[k + 1]:.6f} s are {dt[k]:.6g} s apart (gaps or a "
+            f"different sampling period)")
+
+
+def _align(log: RunLog) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sensor times and the duties in force at each sensor sample (zero-order hold)."""
+    s = log["/rig/sensors"]
+    v = log["/rig/valves"]
+    ts = s.index.to_numpy()
+    tv = v.index.to_numpy()
+    cols = [f"u_{n}" for n in VALVES]
+    uv = v[cols].to_numpy(dtype=float)
+    k = np.searchsorted(tv, ts + 1e-9, side="right") - 1
+    u = np.where(k[:, None] >= 0, uv[np.clip(k, 0, None)], 0.0)
+    return ts, s[["x", "p_a", "p_b", "p_s"]].to_numpy(dtype=float), u
+
+
+def load_dataset(path: str | os.PathLike[str]) -> Dataset:
+    """Read and check a run log for identification.
+
+    Raises
+    ------
+    LogError
+        Any bad-file case of contract 1 (typed, from the reader) or an
+        :class:`IdentificationError` from the checks above.
+    """
+    log = read_run_log(Path(path))
+    rig = _rig_from_log(log)
+    check_plausible(log, rig)
+    t, sens, u = _align(log)
+    x = sens[:, 0]
+    win = min(SG_WINDOW, len(x) - (1 - len(x) % 2))
+    v = savgol_filter(x, win, SG_ORDER, deriv=1, delta=rig.Ts)
+    return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
+                   p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=v)

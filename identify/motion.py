@@ -1,0 +1,224 @@
+"""Friction (Eq. 2), the smooth model (Eqs. 3-4), the moving mass and F_n, from Eq. (1).
+
+Eq. (1) rearranged with the measured pressure force F_p = A_a p_a - A_b p_b - p0 A_r:
+
+    F_p = M a + F_f(v) - F_n        (while sliding)
+
+* :class:`FrictionIdentifier`: nonlinear least squares (``scipy.optimize.least_squares``) for
+  the Stribeck parameters F_S, F_C, v_s, alpha, b_v and F_n on the sliding samples, and linear
+  least squares for the smooth model θ2..θ4 of the paper (F_p = θ1 a - θ2 + θ3 v + θ4 S_f(v)).
+  Velocity comes from a Savitzky-Golay derivative of x (no phase lag).
+* :class:`MassIdentifier`: the integrated form ``M Δv = ∫(F_p - F_f + F_n) dt`` over windows,
+  which needs no acceleration; with a block bootstrap for its interval. On a rig like the
+  paper's the mechanical pole b_v/M (~530 Hz) lies far above the 125 Hz Nyquist frequency of
+  4 ms sampling and the interval is wide: see docs/identifiability.md. A known mass (datasheet
+  plus weighed payload) can be given instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import savgol_filter
+
+from pneutune.control.friction import SF_SLOPE
+
+from .base import Identifier
+from .dataset import Dataset, IdentificationError
+
+#: Samples slower than this are not "sliding" for the friction fit [m/s].
+V_SLIDE = 2.0e-3
+#: Fewest sliding samples the friction fit accepts.
+MIN_SLIDING = 200
+
+
+def smooth_sign(v: np.ndarray) -> np.ndarray:
+    """S_f of Eq. (4), vectorised: (2/π) arctan(1000 v)."""
+    return (2.0 / np.pi) * np.arctan(SF_SLOPE * v)
+
+
+def stribeck(v: np.ndarray, F_S: float, F_C: float, v_s: float, alpha: float,
+             b_v: float) -> np.ndarray:
+    """Sliding friction of Eq. (2) [N] (sgn(v) at v = 0 is 0)."""
+    av = np.abs(v)
+    return np.sign(v) * (F_C + (F_S - F_C) * np.exp(-((av / v_s) ** alpha))) + b_v * v
+
+
+class FrictionIdentifier(Identifier):
+    """Stribeck friction, F_n and the smooth model's θ2..θ4.
+
+    Parameters
+    ----------
+    mass : float
+        Moving mass used for the (small) inertial term M a [kg].
+    v_slide : float
+        Threshold on |v| for sliding samples [m/s].
+    sg_window : int
+        Savitzky-Golay window of the velocity and acceleration estimates [samples].
+
+    Attributes
+    ----------
+    F_S_, F_C_, v_s_, alpha_, b_v_, F_n_ : float
+        Stribeck parameters [N, N, m/s, -, N s/m] and the constant force F_n [N].
+    std_ : dict
+        Standard errors of the Stribeck fit.
+    smooth_ : ndarray (3,)
+        θ2 = F_n [N], θ3 = b_v [N s/m], θ4 = A_f [N] of the smooth model (θ1 = ``mass``).
+    residual_std_, residual_max_ : float
+        Residual force of the Stribeck fit on sliding samples, rms and 99.9th percentile [N].
+    sliding_ : ndarray of bool
+        Samples used.
+    """
+
+    def __init__(self, mass: float, v_slide: float = V_SLIDE, sg_window: int = 7) -> None:
+        self.mass = mass
+        self.v_slide = v_slide
+        self.sg_window = sg_window
+
+    def fit(self, data: Dataset, mask: np.ndarray | None = None) -> FrictionIdentifier:
+        """Fit on the sliding samples where ``mask`` is True.
+
+        Raises
+        ------
+        IdentificationError
+            The piston hardly moves: friction is not identifiable.
+        """
+        mask = np.ones(data.n, dtype=bool) if mask is None else mask
+        v = savgol_filter(data.x, self.sg_window, 3, deriv=1, delta=data.Ts)
+        a = savgol_filter(data.x, self.sg_window, 3, deriv=2, delta=data.Ts)
+        # sliding throughout the derivative's window: around a stick or a reversal the smoothed
+        # velocity is wrong, and those samples would bias F_C and hide the Stribeck bump
+        fast = np.abs(v) > self.v_slide
+        same_sign = np.sign(v)
+        h = self.sg_window // 2
+        steady = np.ones(data.n, dtype=bool)
+        for k in range(-h, h + 1):
+            steady &= np.roll(fast, k) & (np.roll(same_sign, k) == same_sign)
+        steady[:h] = steady[-h:] = False
+        slide = mask & steady
+        stroke = data.rig.x_max - data.rig.x_min
+        if slide.sum() < MIN_SLIDING or np.ptp(data.x[mask]) < 0.05 * stroke:
+            raise IdentificationError(
+                data.path, f"the piston hardly moves in the fitted part of the log "
+                f"({int(slide.sum())} samples faster than {self.v_slide * 1e3:g} mm/s, travel "
+                f"{np.ptp(data.x[mask]) * 1e3:.2f} mm): friction and mass are not identifiable; "
+                f"record motion at several speeds (the identification run does)")
+        y = data.F_p[slide] - self.mass * a[slide]
+        vs = v[slide]
+
+        def resid(p: np.ndarray) -> np.ndarray:
+            F_S, F_C, v_s, alpha, b_v, F_n = p
+            return stribeck(vs, F_S, F_C, v_s, alpha, b_v) - F_n - y
+
+        # start from the linear Coulomb + viscous fit
+        A = np.column_stack([np.sign(vs), vs, -np.ones_like(vs)])
+        (Fc0, bv0, Fn0), *_ = np.linalg.lstsq(A, y, rcond=None)
+        Fc0 = max(float(Fc0), 1.0)
+        p0 = np.array([1.3 * Fc0, Fc0, 5e-3, 2.0, max(float(bv0), 1.0), float(Fn0)])
+        lo = np.array([0.0, 0.0, 2e-4, 0.3, 0.0, -1e4])
+        hi = np.array([1e4, 1e4, 0.2, 8.0, 1e5, 1e4])
+        sol = least_squares(resid, p0, bounds=(lo, hi), x_scale="jac", loss="soft_l1",
+                            f_scale=max(1.0, 3.0 * float(np.std(y - A @ [Fc0, bv0, Fn0]))))
+        F_S, F_C, v_s, alpha, b_v, F_n = sol.x
+        if F_C > F_S:  # the Stribeck bump vanished: the data show no stiction excess
+            F_S = F_C
+        self.F_S_, self.F_C_, self.v_s_, self.alpha_, self.b_v_, self.F_n_ = (
+            float(F_S), float(F_C), float(v_s), float(alpha), float(b_v), float(F_n))
+        r = resid(sol.x)
+        self.residual_std_ = float(np.sqrt(np.mean(r**2)))
+        self.residual_max_ = float(np.quantile(np.abs(r), 0.999))
+        J = sol.jac
+        cov = np.linalg.pinv(J.T @ J) * self.residual_std_**2
+        # neighbouring residuals share the derivative window: inflate by its length
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * np.sqrt(float(self.sg_window))
+        self.std_ = dict(zip(("F_S", "F_C", "v_s", "alpha", "b_v", "F_n"), sd, strict=True))
+        # the paper's smooth model, θ1 = mass fixed: y = -θ2 + θ3 v + θ4 S_f(v)
+        B = np.column_stack([-np.ones_like(vs), vs, smooth_sign(vs)])
+        self.smooth_, *_ = np.linalg.lstsq(B, y, rcond=None)
+        self._B, self._y = B, y
+        self.sliding_ = slide
+        self.fitted_ = True
+        return self
+
+    def smooth_bootstrap(self, n_boot: int, block: int, seed: int) -> np.ndarray:
+        """Moving-block bootstrap of the smooth model's θ2..θ4, shape (n_boot, 3)."""
+        self._require_fitted()
+        rng = np.random.default_rng(seed)
+        n = len(self._y)
+        nb = max(1, n // block)
+        out = np.empty((n_boot, 3))
+        for i in range(n_boot):
+            starts = rng.integers(0, max(1, n - block), nb)
+            idx = (starts[:, None] + np.arange(block)[None, :]).ravel()
+            out[i], *_ = np.linalg.lstsq(self._B[idx], self._y[idx], rcond=None)
+        return out
+
+
+class MassIdentifier(Identifier):
+    """Moving mass from the integrated motion equation, with a bootstrap interval.
+
+    Over a window [k0, k1] while sliding: ``M (v1 - v0) = Σ (F_p - F_f(v) + F_n) Ts``, with the
+    friction of a fitted :class:`FrictionIdentifier`. One equation per window, least squares
+    through the origin.
+
+    Parameters
+    ----------
+    friction : FrictionIdentifier
+        Fitted friction (F_f and F_n).
+    window : int
+        Window length [samples].
+    n_boot : int
+        Bootstrap replicates (over windows).
+    seed : int
+        Bootstrap seed.
+
+    Attributes
+    ----------
+    M_ : float
+        Estimate [kg] (clipped to >= 0.01 kg).
+    ci_ : (float, float)
+        Central 99 % bootstrap interval [kg].
+    n_windows_ : int
+        Windows used.
+    """
+
+    def __init__(self, friction: FrictionIdentifier, window: int = 25, n_boot: int = 400,
+                 seed: int = 0) -> None:
+        self.friction = friction
+        self.window = window
+        self.n_boot = n_boot
+        self.seed = seed
+
+    def fit(self, data: Dataset, mask: np.ndarray | None = None) -> MassIdentifier:
+        """Fit on windows that lie inside ``mask`` and are sliding throughout."""
+        f = self.friction
+        mask = np.ones(data.n, dtype=bool) if mask is None else mask
+        v = data.v
+        force = data.F_p - stribeck(v, f.F_S_, f.F_C_, f.v_s_, f.alpha_, f.b_v_) + f.F_n_
+        # trapezoid with the viscous part exact from positions: ∫ b_v v dt = b_v Δx
+        force_nv = data.F_p - (stribeck(v, f.F_S_, f.F_C_, f.v_s_, f.alpha_, 0.0)) + f.F_n_
+        c = np.concatenate([[0.0], np.cumsum(0.5 * (force_nv[1:] + force_nv[:-1]) * data.Ts)])
+        del force
+        ok = mask & (np.abs(v) > V_SLIDE)
+        bad = np.concatenate([[0], np.cumsum(~ok)])
+        w = self.window
+        k0 = np.arange(0, data.n - w, max(1, w // 2))
+        k0 = k0[(bad[k0 + w + 1] - bad[k0]) == 0]
+        k1 = k0 + w
+        if len(k0) < 10:
+            raise IdentificationError(data.path, f"only {len(k0)} sliding windows of "
+                                      f"{w * data.Ts:g} s: the mass is not identifiable")
+        dv = v[k1] - v[k0]
+        rhs = (c[k1] - c[k0]) - f.b_v_ * (data.x[k1] - data.x[k0])
+        M = float(np.dot(dv, rhs) / np.dot(dv, dv))
+        rng = np.random.default_rng(self.seed)
+        boots = np.empty(self.n_boot)
+        for i in range(self.n_boot):
+            j = rng.integers(0, len(k0), len(k0))
+            boots[i] = np.dot(dv[j], rhs[j]) / np.dot(dv[j], dv[j])
+        self.M_ = max(M, 0.01)
+        lo, hi = np.quantile(boots, [0.005, 0.995])
+        self.ci_ = (float(max(lo, 0.0)), float(max(hi, lo + 1e-6)))
+        self.n_windows_ = len(k0)
+        self.fitted_ = True
+        return self

@@ -1,0 +1,197 @@
+"""report.md for ``identify``: what was fitted, how well, and the plots of each fit."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from pneutune.control.atomic import atomic_open, atomic_write_text
+from pneutune.control.constants import THETA_NAMES, VALVES
+
+from .motion import smooth_sign, stribeck
+from .pipeline import IdentifyResult
+
+_UNITS = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
+
+
+def _save(fig: plt.Figure, path: Path) -> None:
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, format="png", dpi=110)
+    plt.close(fig)
+
+
+def _plot_valves(r: IdentifyResult, out: Path) -> Path:
+    v = r.valves
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    res = v._residuals(v.theta_, v.curves_) * 1e3
+    na = len(v._k0[0])
+    for ch, ax in enumerate(axes):
+        meas = v._dp[ch] / 1e3
+        wt = v._wt[ch]
+        model = meas + (res[:na] if ch == 0 else res[na:]) / np.where(wt > 0, wt, 1.0) / 1e3
+        ax.scatter(meas, model, s=3, c=np.where(wt >= 1.0, "C0", "C1"), alpha=0.5)
+        lim = [min(meas.min(), model.min()), max(meas.max(), model.max())]
+        ax.plot(lim, lim, "k--", lw=0.8)
+        ax.set_xlabel(f"measured Δp_{'ab'[ch]} over {v.window_} samples [kPa]")
+        ax.set_ylabel("model [kPa]")
+        ax.set_title(f"chamber {'AB'[ch]}: rms residual {v.residual_std_[ch]:.0f} Pa "
+                     f"(blue: valves fully open/shut, orange: partial duty)", fontsize=8)
+    fig.suptitle("Valve fit: pressure increments, Eqs. (5)-(7)")
+    fig.tight_layout()
+    path = out / "valves.png"
+    _save(fig, path)
+    return path
+
+
+def _plot_pwm(r: IdentifyResult, out: Path) -> Path:
+    v = r.valves
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    for i, name in enumerate(VALVES):
+        ax.plot(v.knots_, v.curves_[i], lw=0.8, label=name)
+    ax.plot(v.knots_, v.curve_, "k", lw=2, label="mean (model.yaml)")
+    ax.plot([0, 1], [0, 1], ":", color="0.5", lw=0.8)
+    ax.set_xlabel("commanded duty")
+    ax.set_ylabel("effective open fraction")
+    sw = v.switching(1.0 / r.data.rig.pwm_hz)
+    ax.set_title(f"PWM curve (QP, monotone): dead zone to {sw['dead_zone']:.3f}, "
+                 f"offset {sw['offset']:+.3f}", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "pwm.png"
+    _save(fig, path)
+    return path
+
+
+def _plot_friction(r: IdentifyResult, out: Path) -> Path:
+    f = r.friction
+    d = r.data
+    sl = f.sliding_
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    y = f._y
+    vs = d.v[sl] if len(y) == int(sl.sum()) else None
+    if vs is not None:
+        ax.scatter(vs * 1e3, y + f.F_n_, s=2, alpha=0.3, color="0.5", label="F_p - M a (+F_n)")
+    vv = np.linspace(-0.25, 0.25, 1001)
+    ax.plot(vv * 1e3, stribeck(vv, f.F_S_, f.F_C_, f.v_s_, f.alpha_, f.b_v_), "C3",
+            label="Stribeck fit, Eq. (2)")
+    _, bv, Af = f.smooth_
+    ax.plot(vv * 1e3, bv * vv + Af * smooth_sign(vv), "C0--", label="smooth model, Eq. (3)")
+    ax.set_xlabel("velocity [mm/s]")
+    ax.set_ylabel("friction force [N]")
+    ax.set_title(f"F_C = {f.F_C_:.1f} N, F_S = {f.F_S_:.1f} N, b_v = {f.b_v_:.0f} N s/m; "
+                 f"A_f = {Af:.1f} N", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "friction.png"
+    _save(fig, path)
+    return path
+
+
+def _plot_validation(r: IdentifyResult, out: Path) -> Path:
+    val = r.validation
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    scale = (1e3, 1e-5, 1e-5)
+    ylabels = ("x [mm]", "p_a [bar]", "p_b [bar]")
+    keys = ("x", "p_a", "p_b")
+    for i, ax in enumerate(axes):
+        ax.plot(val.t, val.measured[:, i] * scale[i], "k", lw=0.8, label="measured")
+        ax.plot(val.t, val.simulated[:, i] * scale[i], "C1", lw=0.8, label="identified model")
+        ax.set_ylabel(ylabels[i])
+        ax.set_title(f"NRMSE {val.nrmse[keys[i]]:.3f}", fontsize=8)
+    axes[0].legend(fontsize=8)
+    axes[-1].set_xlabel("time [s] (held-out part, 2 s windows from the measured state)")
+    fig.suptitle("Validation: the identified model driven by the logged duties")
+    fig.tight_layout()
+    path = out / "validation.png"
+    _save(fig, path)
+    return path
+
+
+def summary_rows(r: IdentifyResult) -> list[tuple[str, str, str]]:
+    """(parameter, value, range or bounds) rows of the on-screen summary."""
+    m = r.model
+    rows = []
+    for name, v in zip(VALVES, m.valves.ordered(), strict=True):
+        rows.append((f"C {name}", f"{v.C:.4g} m^3/(s Pa)", f"[{v.C_min:.4g}, {v.C_max:.4g}]"))
+        rows.append((f"b {name}", f"{v.b:.4g}", f"[{v.b_min:.4g}, {v.b_max:.4g}]"))
+    f = m.friction
+    rows += [("F_C", f"{f.F_C:.2f} N", ""), ("F_S", f"{f.F_S:.2f} N", ""),
+             ("b_v", f"{f.b_v:.1f} N s/m", ""), ("v_s", f"{f.v_s * 1e3:.2f} mm/s", ""),
+             ("alpha", f"{f.alpha:.2f}", "")]
+    for i, name in enumerate(THETA_NAMES):
+        rows.append((f"θ{i + 1} {name}", f"{m.theta.nominal[i]:.4g} {_UNITS[i]}",
+                     f"[{m.theta.min[i]:.4g}, {m.theta.max[i]:.4g}]"))
+    rows += [("F_max", f"{m.uncertainty.F_max:.3g} N", ""),
+             ("D_a_max / D_b_max", f"{m.uncertainty.D_a_max:.3g} / {m.uncertainty.D_b_max:.3g}"
+              " Pa/s", ""),
+             ("fit NRMSE x / p_a / p_b", f"{m.fit.nrmse_x:.3f} / {m.fit.nrmse_p_a:.3f} / "
+              f"{m.fit.nrmse_p_b:.3f}", "held-out part")]
+    return rows
+
+
+def format_summary(r: IdentifyResult) -> str:
+    """The on-screen summary table."""
+    rows = summary_rows(r)
+    w0 = max(len(a) for a, _, _ in rows)
+    w1 = max(len(b) for _, b, _ in rows)
+    lines = [f"identify {r.data.path}: {r.data.duration:.1f} s, {r.data.n} samples"]
+    lines += [f"  {a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows]
+    lines += [f"  note: {n}" for n in r.notes]
+    return "\n".join(lines)
+
+
+def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
+    """Write report.md and its figures into ``folder``; returns the report's path."""
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = {"valves": _plot_valves(r, out), "pwm": _plot_pwm(r, out),
+            "friction": _plot_friction(r, out), "validation": _plot_validation(r, out)}
+    m = r.model
+    th = r.theta
+    lines = [
+        "# Identification report", "",
+        f"Log: `{m.source.log}` (sha256 `{m.source.sha256[:16]}…`, {m.source.duration_s:.1f} s). "
+        f"Fitted on the first {100 * r.data.split(0.2)[0].mean():.0f} % of the samples; the rest "
+        f"is held out for validation.", "",
+        "## θ and its bounds (Assumption 1)", "",
+        "| θ | nominal | min | max | width | basis |", "|---|---:|---:|---:|---:|---|",
+    ]
+    for i, name in enumerate(THETA_NAMES):
+        lines.append(f"| θ{i + 1} {name} [{_UNITS[i]}] | {th.nominal[i]:.5g} | {th.lo[i]:.5g} | "
+                     f"{th.hi[i]:.5g} | {th.widths[i]:.4g} | {th.basis[i]} |")
+    lines += ["", f"F_max = {m.uncertainty.F_max:.3g} N (99.9th percentile of the friction "
+              f"fit's residual force), D_a_max = {m.uncertainty.D_a_max:.3g} Pa/s, "
+              f"D_b_max = {m.uncertainty.D_b_max:.3g} Pa/s (largest valve-fit window residual "
+              f"per second).", "",
+              "## Valves (ISO 6358, Eq. 7)", "",
+              "| valve | C [m^3/(s Pa)] | C range | b | b range | delay_on | delay_off | "
+              "min_pulse |", "|---|---:|---|---:|---|---:|---:|---:|"]
+    for name, v in zip(VALVES, m.valves.ordered(), strict=True):
+        lines.append(f"| {name} | {v.C:.5g} | [{v.C_min:.4g}, {v.C_max:.4g}] | {v.b:.4f} | "
+                     f"[{v.b_min:.3f}, {v.b_max:.3f}] | {v.delay_on * 1e3:.2f} ms | "
+                     f"{v.delay_off * 1e3:.2f} ms | {v.min_pulse * 1e3:.2f} ms |")
+    lines += ["", f"Leak A↔B: C = {m.leak.C:.3g} m^3/(s Pa). Only the minimum pulse and the "
+              "difference of the delays show in 4 ms samples; delay_on is set to the minimum "
+              "pulse.", "", f"![valve fit]({figs['valves'].name})", "",
+              f"![PWM curve]({figs['pwm'].name})", "",
+              "## Friction and mass (Eqs. 1-4)", "",
+              f"Stribeck: F_S = {m.friction.F_S:.2f} N, F_C = {m.friction.F_C:.2f} N, "
+              f"v_s = {m.friction.v_s * 1e3:.2f} mm/s, alpha = {m.friction.alpha:.2f}, "
+              f"b_v = {m.friction.b_v:.1f} N s/m; smooth model A_f = {m.friction.A_f:.2f} N. "
+              f"Mass {m.mass:.4g} kg, range {list(m.mass_range or ())} ({r.mass_basis}).", "",
+              f"![friction]({figs['friction'].name})", "",
+              "## Validation (held-out part)", "",
+              f"NRMSE x = {m.fit.nrmse_x:.4f}, p_a = {m.fit.nrmse_p_a:.4f}, "
+              f"p_b = {m.fit.nrmse_p_b:.4f}.", "",
+              f"![validation]({figs['validation'].name})", ""]
+    if r.notes:
+        lines += ["## Not identifiable, or weakly", ""] + [f"- {n}" for n in r.notes] + [""]
+    path = out / "report.md"
+    atomic_write_text(path, "\n".join(lines))
+    return path

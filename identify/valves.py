@@ -1,0 +1,426 @@
+"""Valve conductances C, critical ratios b and the PWM duty curves, from chamber pressures.
+
+The chamber equations (5)-(6) of the paper, integrated over windows of whole PWM periods:
+
+    p(t_k1) - p(t_k0) = sum_k [ Ts n R T0 / V_k (r_in(u_in,k) Φ_in,k - r_out(u_out,k) Φ_out,k ∓ L_k)
+                                - n p_k (V_k+1 - V_k) / V_k ] + Ts (k1 - k0) D
+
+with Φ the ISO 6358 flow of Eq. (7) (:func:`pneutune.control.flow.signed_flow_array`, reverse
+flow included), L the seal leak (ISO 6358 with b = 0), r(u) the effective open fraction of a
+valve at commanded duty u (the PWM curve) and midpoint values p_k, V_k over each sample. Windows
+of whole PWM periods make the on/off ripple of the valves cancel at the window ends. Position
+increments replace dV/dt, so nothing is differentiated.
+
+Two alternating solves (block coordinate descent):
+
+1. curves fixed: nonlinear least squares (``scipy.optimize.least_squares``, bounded) for C, b of
+   the four valves, the leak conductance and the constant terms D_a, D_b;
+2. C, b fixed: the equations are linear in the curve values at the knots, so each chamber's two
+   curves come from a QP in cvxpy: monotone, 0 <= r <= 1, r(0) = 0, r(1) = 1 (which fixes the
+   scale between C and r), with a small curvature penalty where the data say little.
+"""
+
+from __future__ import annotations
+
+import cvxpy as cp
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import savgol_filter
+
+from pneutune.control.flow import signed_flow_array
+
+from .base import Identifier
+from .dataset import Dataset, IdentificationError
+
+#: Parameter scaling for the solver: C in 1e-9 m^3/(s Pa), leak in 1e-10, D in 1e3 Pa/s.
+_C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
+#: Duty below which a sample does not count as "the valve was commanded open".
+_OPEN_DUTY = 1e-6
+
+
+def pwm_window(Ts: float, pwm_hz: float, lo: int = 8, hi: int = 60) -> int:
+    """Window length (samples) closest to a whole number of PWM periods, within [lo, hi]."""
+    period = 1.0 / pwm_hz
+    best, best_err = lo, np.inf
+    for w in range(lo, hi + 1):
+        cycles = w * Ts / period
+        err = abs(cycles - round(cycles)) / max(cycles, 1.0)
+        if err < best_err - 1e-12:
+            best, best_err = w, err
+    return best
+
+
+def default_knots() -> np.ndarray:
+    """Duty knots of the curves: 0.0125 apart below 0.2 (dead zone), 0.025 above."""
+    return np.unique(np.round(np.concatenate([np.arange(0.0, 0.2, 0.0125),
+                                              np.arange(0.2, 1.0 + 1e-9, 0.025)]), 10))
+
+
+def interp_weights(u: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """Matrix W (len(u), len(knots)) with W @ r = piecewise-linear r at u."""
+    u = np.clip(u, knots[0], knots[-1])
+    j = np.clip(np.searchsorted(knots, u, side="right") - 1, 0, len(knots) - 2)
+    frac = (u - knots[j]) / (knots[j + 1] - knots[j])
+    W = np.zeros((len(u), len(knots)))
+    rows = np.arange(len(u))
+    W[rows, j] = 1.0 - frac
+    W[rows, j + 1] = frac
+    return W
+
+
+class ValveIdentifier(Identifier):
+    """C and b per valve, the leak, D_a, D_b and the PWM curves (one per valve).
+
+    Parameters
+    ----------
+    knots : array, optional
+        Duty knots of the curves (default :func:`default_knots`).
+    iterations : int
+        Alternations between the NLS and the QP.
+    smooth : float
+        Weight of the curvature penalty of the QP, relative to the data.
+    stride : int
+        Window start every ``stride`` samples (windows overlap).
+    smooth_window : int
+        Savitzky-Golay window (samples) of the pressures inside the flow terms.
+    equilibrium_band : float
+        Windows where an open valve has less than this across it are left out [Pa].
+    varying_weight, partial_weight : float
+        Weights of windows whose duties change inside the window, and of windows at a steady
+        partial duty, relative to windows with the chamber's valves fully open or shut (see
+        ``_prepare``).
+    loss, f_scale : str, float
+        Robust loss of the NLS and its scale [kPa] (``scipy.optimize.least_squares``): windows
+        spoiled by what the averaged model lacks (valve delays at duty steps) weigh less.
+
+    Attributes
+    ----------
+    C_, b_ : ndarray (4,)
+        [m^3/(s Pa)], [-] of a_in, a_out, b_in, b_out.
+    C_std_, b_std_ : ndarray (4,)
+        Standard errors (Gauss-Newton, inflated by the window overlap).
+    leak_C_ : float
+        Seal leak conductance [m^3/(s Pa)].
+    D_, D_std_ : ndarray (2,)
+        Constant pressure-rate terms D_a, D_b [Pa/s] (θ5, θ6 of the paper) and their standard
+        errors, from windows with the chamber's valves shut where the log has them.
+    knots_, curves_ : ndarray
+        Duty knots (K,) and the effective open fraction of each valve at them (4, K).
+    curve_ : ndarray (K,)
+        The mean curve (contract 3 has one ``pwm`` curve).
+    residual_std_ : ndarray (2,)
+        RMS window residual of chambers A and B [Pa].
+    D_max_ : ndarray (2,)
+        Largest |window residual| / window time, a bound on the fast-changing terms [Pa/s].
+    window_ : int
+        Window length [samples].
+    """
+
+    def __init__(self, knots: np.ndarray | None = None, iterations: int = 3,
+                 smooth: float = 1e-4, stride: int = 5, smooth_window: int = 9,
+                 equilibrium_band: float = 5.0e3, loss: str = "linear",
+                 f_scale: float = 1.0, varying_weight: float = 0.1,
+                 partial_weight: float = 0.3) -> None:
+        self.knots = knots
+        self.iterations = iterations
+        self.smooth = smooth
+        self.stride = stride
+        self.smooth_window = smooth_window
+        self.equilibrium_band = equilibrium_band
+        self.loss = loss
+        self.f_scale = f_scale
+        self.varying_weight = varying_weight
+        self.partial_weight = partial_weight
+
+    # -- per-sample terms ----------------------------------------------------------------------
+    def _prepare(self, d: Dataset, mask: np.ndarray) -> None:
+        r = d.rig
+        self._nRT = r.n * r.R * r.T0
+        self._u = d.u[:-1]
+        self._mask_samples = mask[:-1] & mask[1:]
+        Va, Vb = d.volumes()
+        pa, pb, ps = d.p_a, d.p_b, d.p_s
+        self._pa_raw, self._pb_raw = pa, pb
+        # Eq. (7) is steep near p_d = p_u: measured pressures would turn sensor noise into large
+        # spurious flows there, so the flow terms use smoothed pressures (Savitzky-Golay, no
+        # lag); the window increments on the left-hand side stay raw.
+        sa = savgol_filter(pa, self.smooth_window, 2)
+        sb = savgol_filter(pb, self.smooth_window, 2)
+        ss = savgol_filter(ps, 4 * self.smooth_window + 1, 1)
+        self._pa = 0.5 * (sa[1:] + sa[:-1])
+        self._pb = 0.5 * (sb[1:] + sb[:-1])
+        self._ps = 0.5 * (ss[1:] + ss[:-1])
+        self._Va = 0.5 * (Va[1:] + Va[:-1])
+        self._Vb = 0.5 * (Vb[1:] + Vb[:-1])
+        self._vol_a = -r.n * self._pa * np.diff(Va) / self._Va
+        self._vol_b = -r.n * self._pb * np.diff(Vb) / self._Vb
+        self._p0 = r.p0
+        self._T0 = r.T0
+        self._Ts = r.Ts
+        w = pwm_window(r.Ts, r.pwm_hz)
+        starts = np.arange(0, d.n - 1 - w, self.stride)
+        # windows where an open valve is near equilibrium (|p_u - p_d| < equilibrium_band)
+        # carry sensor noise, not information on C and b
+        band = self.equilibrium_band
+        u = self._u
+        near_a = ((u[:, 0] > 0) & (np.abs(self._ps - self._pa) < band)) \
+            | ((u[:, 1] > 0) & (np.abs(self._pa - r.p0) < band))
+        near_b = ((u[:, 2] > 0) & (np.abs(self._ps - self._pb) < band)) \
+            | ((u[:, 3] > 0) & (np.abs(self._pb - r.p0) < band))
+        self._k0, self._k1, self._dp, self._wt = [], [], [], []
+        for ch, (near, p) in enumerate(((near_a, pa), (near_b, pb))):
+            bad = np.concatenate([[0], np.cumsum(near | ~mask[:-1])])
+            k0 = starts[(bad[starts + w] - bad[starts]) == 0]
+            # The averaged model r(u) is exact while a chamber's duties are steady over the
+            # window; where they change from sample to sample the pulses depend on the carrier
+            # phase, which a 4 ms log does not show. Such windows weigh ``varying_weight``.
+            # (a duty step into the window's first sample counts too: the valves answer it
+            # with their delays, inside that sample)
+            uc = u[:, 2 * ch:2 * ch + 2]
+            change = np.concatenate([[0, 0], np.cumsum(np.any(np.abs(np.diff(uc, axis=0))
+                                                              > 1e-9, axis=1))])
+            steady = (change[k0 + w] - change[k0]) == 0
+            # windows with the valves fully open or shut need no curve at all (r(0) = 0 and
+            # r(1) = 1): they pin C and b; steady partial duties weigh ``partial_weight``
+            full = np.all((uc[k0] < 1e-9) | (uc[k0] > 1.0 - 1e-9), axis=1)
+            self._k0.append(k0)
+            self._k1.append(k0 + w)
+            self._dp.append(p[k0 + w] - p[k0])
+            self._wt.append(np.where(steady, np.where(full, 1.0, self.partial_weight),
+                                     self.varying_weight))
+        self.window_ = w
+        K = len(self.knots_)
+        # windowed interpolation weights: sum over a window of coef_k * W(u_k)
+        self._Wu = [interp_weights(self._u[:, i], self.knots_) for i in range(4)]
+        self._K = K
+
+    def _flows(self, C: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+        """Fully-open flows of each valve per sample, signed into its chamber [kg/s]."""
+        T0, p0 = self._T0, self._p0
+        return [signed_flow_array(C[0], b[0], self._ps, self._pa, T0),
+                -signed_flow_array(C[1], b[1], self._pa, p0, T0),
+                signed_flow_array(C[2], b[2], self._ps, self._pb, T0),
+                -signed_flow_array(C[3], b[3], self._pb, p0, T0)]
+
+    def _window_sum(self, term: np.ndarray, chamber: int) -> np.ndarray:
+        c = np.cumsum(term, axis=0)
+        c = np.concatenate([np.zeros((1, *c.shape[1:])), c])
+        return c[self._k1[chamber]] - c[self._k0[chamber]]
+
+    def _residuals(self, theta: np.ndarray, curves: np.ndarray) -> np.ndarray:
+        C = theta[0:8:2] * _C_UNIT
+        b = theta[1:8:2]
+        leak = theta[8] * _LEAK_UNIT
+        Da, Db = theta[9] * _D_UNIT, theta[10] * _D_UNIT
+        phi = self._flows(C, b)
+        ratios = [np.interp(self._u[:, i], self.knots_, curves[i]) for i in range(4)]
+        L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
+        ga = self._Ts * self._nRT / self._Va * (ratios[0] * phi[0] + ratios[1] * phi[1] - L)
+        gb = self._Ts * self._nRT / self._Vb * (ratios[2] * phi[2] + ratios[3] * phi[3] + L)
+        ma = self._window_sum(ga + self._vol_a + self._Ts * Da, 0)
+        mb = self._window_sum(gb + self._vol_b + self._Ts * Db, 1)
+        return np.concatenate([(ma - self._dp[0]) * self._wt[0],
+                               (mb - self._dp[1]) * self._wt[1]]) / 1e3
+
+    def _fit_curves(self, C: np.ndarray, b: np.ndarray, leak: float, D: np.ndarray) -> np.ndarray:
+        phi = self._flows(C, b)
+        L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
+        curves = np.zeros((4, self._K))
+        for ch, (i, j, V, vol, Dc, sgn) in enumerate((
+                (0, 1, self._Va, self._vol_a, D[0], -1.0),
+                (2, 3, self._Vb, self._vol_b, D[1], 1.0))):
+            dp = self._dp[ch]
+            g = self._Ts * self._nRT / V
+            known = self._window_sum(vol + self._Ts * Dc + g * sgn * L, ch)
+            Ai = self._window_sum((g * phi[i])[:, None] * self._Wu[i], ch)
+            Aj = self._window_sum((g * phi[j])[:, None] * self._Wu[j], ch)
+            y = dp - known
+            wt = self._wt[ch][:, None] / 1e3
+            A = np.hstack([Ai, Aj]) * wt
+            y = y * wt[:, 0]
+            r = cp.Variable(2 * self._K)
+            D2 = np.diff(np.eye(self._K), 2, axis=0)
+            lam = self.smooth * float(np.sum(A * A)) / self._K
+            ri, rj = r[:self._K], r[self._K:]
+            cons = [ri[0] == 0, rj[0] == 0, ri[-1] == 1, rj[-1] == 1, r >= 0, r <= 1,
+                    cp.diff(ri) >= 0, cp.diff(rj) >= 0]
+            obj = cp.Minimize(cp.sum_squares(A @ r - y)
+                              + lam * (cp.sum_squares(D2 @ ri) + cp.sum_squares(D2 @ rj)))
+            prob = cp.Problem(obj, cons)
+            prob.solve(solver=cp.CLARABEL if "CLARABEL" in cp.installed_solvers() else None)
+            if r.value is None:  # pragma: no cover - solver failure
+                raise IdentificationError(self._path, f"the PWM-curve QP of chamber "
+                                          f"{'AB'[ch]} failed ({prob.status})")
+            vals = np.clip(np.asarray(r.value).ravel(), 0.0, 1.0)
+            curves[i] = np.maximum.accumulate(vals[:self._K])
+            curves[j] = np.maximum.accumulate(vals[self._K:])
+        return curves
+
+    def _closed_valve_D(self, leak: float) -> tuple[list[float | None], list[float]]:
+        """D_a, D_b [Pa/s] and standard errors from windows with the chamber's valves shut.
+
+        There dp/dt is the volume term, the leak and D only: no valve model is involved, so
+        the estimate is free of the averaged-PWM model's errors. None where no such window
+        exists.
+        """
+        w = self.window_
+        L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
+        out: list[float | None] = [None, None]
+        std = [np.nan, np.nan]
+        for ch, (V, vol, p, sgn) in enumerate(((self._Va, self._vol_a, self._pa_raw, -1.0),
+                                               (self._Vb, self._vol_b, self._pb_raw, 1.0))):
+            uc = self._u[:, 2 * ch:2 * ch + 2]
+            shut = np.all(uc <= 0.0, axis=1) & self._mask_samples
+            shut_prev = np.concatenate([[False], shut[:-1]])
+            ok = shut & shut_prev
+            term = vol + self._Ts * self._nRT / V * sgn * L
+            cs = np.concatenate([[0.0], np.cumsum(term)])
+            y = p[: len(cs)] - cs  # pressure less the modelled change: D t + const + noise
+            # a straight line through each stretch of shut valves (far more precise than
+            # window increments), combined by inverse variance
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
+            slopes, variances = [], []
+            for a, b in zip(edges[::2], edges[1::2], strict=True):
+                if b - a < w:
+                    continue
+                tt = np.arange(a, b + 1) * self._Ts
+                yy = y[a:b + 1]
+                A = np.column_stack([tt - tt.mean(), np.ones_like(tt)])
+                coef, *_ = np.linalg.lstsq(A, yy, rcond=None)
+                dof = max(1, len(tt) - 2)
+                s2 = float(np.sum((yy - A @ coef) ** 2)) / dof
+                slopes.append(coef[0])
+                variances.append(s2 / float(np.sum((tt - tt.mean()) ** 2)))
+            if len(slopes) < 1:
+                continue
+            wts = 1.0 / np.asarray(variances)
+            out[ch] = float(np.sum(wts * np.asarray(slopes)) / np.sum(wts))
+            # between-stretch scatter counts too (drifts the straight line does not model)
+            spread = float(np.std(slopes, ddof=1) / np.sqrt(len(slopes))) if len(slopes) > 2 \
+                else 0.0
+            std[ch] = max(float(np.sqrt(1.0 / np.sum(wts))), spread)
+        return out, std
+
+    @staticmethod
+    def _fix_D(theta: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+               D_fixed: tuple[list[float | None], list[float]]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Hold D_a / D_b at their closed-valve estimates (a tight bound) where available."""
+        theta, lo, hi = theta.copy(), lo.copy(), hi.copy()
+        for ch, D in enumerate(D_fixed[0]):
+            if D is not None:
+                theta[9 + ch] = D / _D_UNIT
+                lo[9 + ch] = theta[9 + ch] - 1e-6
+                hi[9 + ch] = theta[9 + ch] + 1e-6
+        return theta, lo, hi
+
+    def fit(self, data: Dataset, mask: np.ndarray | None = None) -> ValveIdentifier:
+        """Fit on the samples where ``mask`` is True (default: all).
+
+        Raises
+        ------
+        IdentificationError
+            A valve is never commanded open, so its C and b are not identifiable.
+        """
+        self._path = data.path
+        mask = np.ones(data.n, dtype=bool) if mask is None else mask
+        from pneutune.control.constants import VALVES
+
+        for i, name in enumerate(VALVES):
+            u = data.u[mask, i]
+            if not np.any(u > _OPEN_DUTY):
+                raise IdentificationError(
+                    data.path, f"valve {name} is never commanded open in the fitted part of the "
+                    f"log: its C and b are not identifiable; record an identification run "
+                    f"(simulate --experiment identification, or the same protocol on the rig)")
+            if not np.any(u >= 0.999):
+                self.notes_ = [*getattr(self, "notes_", []),
+                               f"valve {name} never runs at full duty: its C and the top of its "
+                               f"PWM curve are only separable through the curve's shape"]
+        self.notes_ = list(getattr(self, "notes_", []))
+        self.knots_ = default_knots() if self.knots is None else np.asarray(self.knots, float)
+        self._prepare(data, mask)
+        curves = np.tile(self.knots_, (4, 1))  # start: r(u) = u
+        theta = np.array([8.0, 0.3, 8.0, 0.3, 8.0, 0.3, 8.0, 0.3, 0.0, 0.0, 0.0])
+        lo = np.array([0.01, 0.0, 0.01, 0.0, 0.01, 0.0, 0.01, 0.0, 0.0, -1e4, -1e4])
+        hi = np.array([1000.0, 0.9, 1000.0, 0.9, 1000.0, 0.9, 1000.0, 0.9, 1000.0, 1e4, 1e4])
+        sol = None
+        D_fixed = None
+        for _ in range(max(1, self.iterations)):
+            D_fixed = self._closed_valve_D(theta[8] * _LEAK_UNIT)
+            theta, lo, hi = self._fix_D(theta, lo, hi, D_fixed)
+            sol = least_squares(self._residuals, theta, bounds=(lo, hi), args=(curves,),
+                                x_scale="jac", method="trf", loss=self.loss,
+                                f_scale=self.f_scale)
+            theta = sol.x
+            C = theta[0:8:2] * _C_UNIT
+            b = theta[1:8:2]
+            curves = self._fit_curves(C, b, theta[8] * _LEAK_UNIT,
+                                      np.array([theta[9], theta[10]]) * _D_UNIT)
+        sol = least_squares(self._residuals, theta, bounds=(lo, hi), args=(curves,),
+                            x_scale="jac", method="trf", loss=self.loss,
+                                f_scale=self.f_scale)
+        theta = sol.x
+        self.theta_ = theta
+        self.C_ = theta[0:8:2] * _C_UNIT
+        self.b_ = theta[1:8:2]
+        self.leak_C_ = float(theta[8] * _LEAK_UNIT)
+        self.D_ = np.array([theta[9], theta[10]]) * _D_UNIT
+        self.D_std_ = np.array([D_fixed[1][0] if D_fixed[0][0] is not None else np.nan,
+                                D_fixed[1][1] if D_fixed[0][1] is not None else np.nan])
+        self.curves_ = curves
+        self.curve_ = np.maximum.accumulate(curves.mean(axis=0))
+        res = sol.fun * 1e3
+        na = len(self._k0[0])
+        self.residual_std_ = np.array([np.sqrt(np.mean(res[:na] ** 2)),
+                                       np.sqrt(np.mean(res[na:] ** 2))])
+        wt = self.window_ * data.Ts
+        self.D_max_ = np.array([np.max(np.abs(res[:na])), np.max(np.abs(res[na:]))]) / wt
+        # Gauss-Newton standard errors; overlapping windows share samples, so inflate by
+        # sqrt(window / stride) (the number of windows each sample appears in).
+        J = sol.jac
+        dof = max(1, len(res) - len(theta))
+        s2 = float(np.sum(sol.fun**2)) / dof
+        try:
+            cov = np.linalg.pinv(J.T @ J) * s2 * (self.window_ / self.stride)
+        except np.linalg.LinAlgError:  # pragma: no cover
+            cov = np.full((len(theta), len(theta)), np.nan)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        for ch in range(2):
+            if not np.isfinite(self.D_std_[ch]):  # no closed-valve stretch: D from the NLS,
+                # where it also absorbs what the flow model misses; its error is at least |D|
+                self.D_std_[ch] = max(sd[9 + ch] * _D_UNIT, abs(self.D_[ch]))
+                self.notes_.append(
+                    f"D_{'ab'[ch]}n: chamber {'AB'[ch]}'s valves are never all shut for a "
+                    f"whole window, so its constant term is not separated from flow-model "
+                    f"error; its bound is widened to cover zero")
+        self.C_std_ = sd[0:8:2] * _C_UNIT
+        self.b_std_ = sd[1:8:2]
+        self.fitted_ = True
+        return self
+
+    def ratio(self, duty: np.ndarray | float, valve: int | None = None) -> np.ndarray:
+        """Effective open fraction at ``duty`` (one valve's curve, or the mean curve)."""
+        self._require_fitted()
+        curve = self.curve_ if valve is None else self.curves_[valve]
+        return np.interp(duty, self.knots_, curve)
+
+    def switching(self, period: float, valve: int | None = None) -> dict[str, float]:
+        """Equivalent switching behaviour of the mean curve.
+
+        Only the minimum pulse (end of the dead zone) and the difference of the delays (the
+        offset of the curve above the diagonal) are visible in 4 ms samples; the opening delay
+        is taken equal to the minimum pulse (its smallest physical value).
+        """
+        self._require_fitted()
+        k = self.knots_
+        r = self.curve_ if valve is None else self.curves_[valve]
+        dead = k[r <= 0.02]
+        d0 = float(dead.max()) if dead.size else 0.0
+        lin = (k > d0 + 0.05) & (r < 0.98) & (k < 0.95)
+        offset = float(np.median(r[lin] - k[lin])) if np.any(lin) else 0.0
+        min_pulse = d0 * period
+        delay_on = min_pulse
+        delay_off = max(0.0, delay_on + offset * period)
+        return {"min_pulse": min_pulse, "delay_on": delay_on, "delay_off": delay_off,
+                "offset": offset, "dead_zone": d0}
