@@ -35,10 +35,10 @@ from .recording import Recording
 from .rig import Rig
 
 #: Duty sweep of the valve tests (1 first: the full-duty charge/discharge).
-DEFAULT_DUTIES: tuple[float, ...] = (1.0, 0.7, 0.5, 0.35, 0.25, 0.18, 0.12, 0.08, 0.05)
+DEFAULT_DUTIES: tuple[float, ...] = (1.0, 0.7, 0.5, 0.35, 0.25, 0.18, 0.14, 0.11, 0.08, 0.05)
 #: Full-duty charge/discharge cycles per chamber: b (the critical pressure ratio) shows only in
 #: the shape of the subsonic part of a charge or a vent, so it is worth a few repetitions.
-FULL_DUTY_CYCLES: int = 4
+FULL_DUTY_CYCLES: int = 5
 #: Ramp speeds of the friction segments [m/s].
 DEFAULT_SPEEDS: tuple[float, ...] = (0.003, 0.006, 0.012, 0.025, 0.05, 0.1)
 #: Sine frequencies [Hz] and cycles of the acceleration segments.
@@ -121,7 +121,7 @@ def _valve_block(chamber: str, duties: Sequence[float]) -> list[Segment]:
                     {"chamber": chamber, "end_stop": stop, "open": [fill, hold]}, prep)]
     sweep = [1.0] * (FULL_DUTY_CYCLES - 1) + list(duties)
     for rep, u in enumerate(sweep):
-        t_half = min(max(0.5 / u, 0.5), 2.0)
+        t_half = min(max(0.8 / u, 0.8), 2.0)
         tag = f"{u:.2f}" if rep >= FULL_DUTY_CYCLES - 1 else f"{u:.2f}#{rep + 1}"
         for kind, valve in (("valve_discharge", vent), ("valve_charge", fill)):
             segs.append(Segment(

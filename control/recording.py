@@ -93,13 +93,18 @@ class Recording:
         meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__}
         meta.update({k: str(v) for k, v in run.items()})
         t = self.t
+        # Values are stored rounded far below any sensor's resolution (position to 1 nm,
+        # pressure to 1 mPa, duty to 1e-9): shorter JSON, smaller logs, nothing lost.
+        sensors = np.column_stack([np.round(self.sensors_[:, 0], 9),
+                                   np.round(self.sensors_[:, 1:], 3)])
+        duties = np.round(self.duties_, 9)
         with RunLogWriter(path, rig=rig, run=meta) as w:
             for t_seg, label, kind, params in self.segments_:
                 w.write("/experiment/segment", t_seg,
                         {"label": label, "kind": kind, "params": params})
-            w.write_many("/rig/sensors", t, dict(zip(SENSOR_FIELDS, self.sensors_.T, strict=True)))
+            w.write_many("/rig/sensors", t, dict(zip(SENSOR_FIELDS, sensors.T, strict=True)))
             w.write_many("/rig/valves", t,
-                         {f"u_{v}": col for v, col in zip(VALVES, self.duties_.T, strict=True)})
+                         {f"u_{v}": col for v, col in zip(VALVES, duties.T, strict=True)})
             if self.truth_ is not None:
                 w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, self.truth_.T, strict=True)))
             if self.reference_ is not None:

@@ -24,6 +24,8 @@ import numpy as np
 
 #: Standard errors either side (99.9 % two-sided for a normal estimate).
 Z = 3.29
+#: Stiction excess (F_S - F_C) / F_C allowed for when the log does not resolve it.
+STICTION_PRIOR = 0.5
 #: Smallest half-widths, so that a bound is never narrower than the sensors can resolve:
 #: F_n [N], b_v [N s/m], A_f [N], D [Pa/s].
 MIN_HALF = {"F_n": 2.0, "b_v": 50.0, "A_f": 5.0, "D": 200.0}
@@ -46,7 +48,8 @@ class ThetaBounds:
 
 def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
                  smooth: np.ndarray, smooth_boot: np.ndarray, stribeck_b_v: float,
-                 F_C: float, F_S: float, D: np.ndarray, D_std: np.ndarray) -> ThetaBounds:
+                 F_C: float, F_S: float, D: np.ndarray, D_std: np.ndarray,
+                 low_speed_margin: tuple[float, float] = (0.0, 0.0)) -> ThetaBounds:
     """Assemble θ and its bounds.
 
     Parameters
@@ -61,13 +64,22 @@ def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
         The Stribeck fit's viscous coefficient and friction levels.
     D, D_std : ndarray (2,)
         θ5, θ6 (D_an, D_bn) [Pa/s] and their standard errors.
+    low_speed_margin : (float, float)
+        Extra half-widths of (b_v, A_f) when the log has few slow sliding samples: a
+        Coulomb-level error ΔF is then absorbed by the viscous term as ΔF / v_rms.
     """
     sd = np.std(smooth_boot, axis=0, ddof=1) if len(smooth_boot) > 1 else np.zeros(3)
     Fn, bv, Af = smooth
     half_Fn = max(Z * sd[0], MIN_HALF["F_n"])
-    half_bv = max(Z * sd[1] + abs(bv - stribeck_b_v), MIN_HALF["b_v"])
-    # A_f S_f(v) stands for friction between the Coulomb level and the stiction peak
-    half_Af = max(Z * sd[2] + max(abs(Af - F_C), abs(F_S - Af)), MIN_HALF["A_f"])
+    half_bv = max(Z * sd[1] + abs(bv - stribeck_b_v) + low_speed_margin[0], MIN_HALF["b_v"])
+    # A_f S_f(v) stands for friction between the Coulomb level and the stiction peak. Where
+    # the log does not resolve the peak (F_S = F_C), allow the stiction excess of typical
+    # cylinder seals, F_S up to 1.5 F_C (a prior, stated in the basis).
+    excess = max(abs(Af - F_C), abs(F_S - Af))
+    unresolved = F_S - F_C < 0.02 * max(F_C, 1e-9)
+    if unresolved:
+        excess = max(excess, STICTION_PRIOR * F_C)
+    half_Af = max(Z * sd[2] + excess + low_speed_margin[1], MIN_HALF["A_f"])
     half_D = np.maximum(Z * np.asarray(D_std), MIN_HALF["D"])
     nominal = np.array([mass, Fn, bv, Af, D[0], D[1]])
     lo = np.array([mass_range[0], Fn - half_Fn, bv - half_bv, Af - half_Af,
@@ -79,7 +91,8 @@ def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
              f"±{Z:g}×bootstrap s.e. ({sd[0]:.3g} N)",
              f"±({Z:g}×bootstrap s.e. {sd[1]:.3g} + Stribeck/smooth gap "
              f"{abs(bv - stribeck_b_v):.3g})",
-             f"±({Z:g}×bootstrap s.e. {sd[2]:.3g} + span to F_C/F_S)",
+             f"±({Z:g}×bootstrap s.e. {sd[2]:.3g} + span to F_C/F_S"
+             + (f", stiction unresolved: +{STICTION_PRIOR:.0%} of F_C)" if unresolved else ")"),
              f"±{Z:g}×Gauss-Newton s.e. ({D_std[0]:.3g} Pa/s)",
              f"±{Z:g}×Gauss-Newton s.e. ({D_std[1]:.3g} Pa/s)")
     return ThetaBounds(nominal=nominal, lo=lo, hi=hi, basis=basis)

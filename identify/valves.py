@@ -114,11 +114,13 @@ class ValveIdentifier(Identifier):
         Largest |window residual| / window time, a bound on the fast-changing terms [Pa/s].
     window_ : int
         Window length [samples].
+    max_duty_ : ndarray (4,)
+        Highest duty each valve was commanded in the fitted part.
     """
 
     def __init__(self, knots: np.ndarray | None = None, iterations: int = 3,
-                 smooth: float = 1e-4, stride: int = 5, smooth_window: int = 9,
-                 equilibrium_band: float = 5.0e3, loss: str = "linear",
+                 smooth: float = 1e-4, stride: int = 2, smooth_window: int = 9,
+                 equilibrium_band: float = 3.0e3, loss: str = "linear",
                  f_scale: float = 1.0, varying_weight: float = 0.1,
                  partial_weight: float = 0.3) -> None:
         self.knots = knots
@@ -158,6 +160,8 @@ class ValveIdentifier(Identifier):
         self._T0 = r.T0
         self._Ts = r.Ts
         w = pwm_window(r.Ts, r.pwm_hz)
+        #: samples a duty change can take to act fully (a PWM period plus the valve delays)
+        self._lookback = int(np.ceil((1.0 / r.pwm_hz + 0.01) / r.Ts))
         starts = np.arange(0, d.n - 1 - w, self.stride)
         # windows where an open valve is near equilibrium (|p_u - p_d| < equilibrium_band)
         # carry sensor noise, not information on C and b
@@ -176,10 +180,13 @@ class ValveIdentifier(Identifier):
             # phase, which a 4 ms log does not show. Such windows weigh ``varying_weight``.
             # (a duty step into the window's first sample counts too: the valves answer it
             # with their delays, inside that sample)
+            # ... and so does one within a PWM period before it: in latched mode a new duty
+            # acts only from the next period start)
             uc = u[:, 2 * ch:2 * ch + 2]
-            change = np.concatenate([[0, 0], np.cumsum(np.any(np.abs(np.diff(uc, axis=0))
-                                                              > 1e-9, axis=1))])
-            steady = (change[k0 + w] - change[k0]) == 0
+            chg = np.any(np.abs(np.diff(uc, axis=0)) > 1e-9, axis=1)
+            cum = np.concatenate([[0], np.cumsum(chg)])
+            first = np.maximum(k0 - self._lookback, 0)
+            steady = (cum[k0 + w - 1] - cum[first]) == 0
             # windows with the valves fully open or shut need no curve at all (r(0) = 0 and
             # r(1) = 1): they pin C and b; steady partial duties weigh ``partial_weight``
             full = np.all((uc[k0] < 1e-9) | (uc[k0] > 1.0 - 1e-9), axis=1)
@@ -256,30 +263,34 @@ class ValveIdentifier(Identifier):
             curves[j] = np.maximum.accumulate(vals[self._K:])
         return curves
 
-    def _closed_valve_D(self, leak: float) -> tuple[list[float | None], list[float]]:
-        """D_a, D_b [Pa/s] and standard errors from windows with the chamber's valves shut.
+    def _closed_stretches(self) -> tuple[list[float | None], list[float], float | None, float]:
+        """D_a, D_b [Pa/s], the leak conductance and standard errors, from shut valves.
 
-        There dp/dt is the volume term, the leak and D only: no valve model is involved, so
-        the estimate is free of the averaged-PWM model's errors. None where no such window
-        exists.
+        Wherever a chamber's two valves stay shut (for at least a window, and for a PWM period
+        before it), Eq. (5) holds no valve flow: the pressure less the volume term changes at
+        ``D - g φ_leak C_leak`` (chamber A; ``+`` for B), with φ_leak the leak flow per unit
+        conductance (ISO 6358 with b = 0) and g = n R T0 / V. A straight line through each such
+        stretch gives its slope (far more precisely than window increments), and a weighted
+        linear least squares over all stretches of both chambers separates D_a, D_b and C_leak
+        when the stretches see different pressure differences across the seal (a chamber held
+        at supply with the other vented, and both at ambient, as the identification run has).
+        None where a chamber never has such a stretch.
         """
         w = self.window_
-        L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
-        out: list[float | None] = [None, None]
-        std = [np.nan, np.nan]
+        rows, rhs, var = [], [], []
+        phi_unit = signed_flow_array(1.0, 0.0, self._pa, self._pb, self._T0)
         for ch, (V, vol, p, sgn) in enumerate(((self._Va, self._vol_a, self._pa_raw, -1.0),
                                                (self._Vb, self._vol_b, self._pb_raw, 1.0))):
             uc = self._u[:, 2 * ch:2 * ch + 2]
             shut = np.all(uc <= 0.0, axis=1) & self._mask_samples
-            shut_prev = np.concatenate([[False], shut[:-1]])
-            ok = shut & shut_prev
-            term = vol + self._Ts * self._nRT / V * sgn * L
-            cs = np.concatenate([[0.0], np.cumsum(term)])
-            y = p[: len(cs)] - cs  # pressure less the modelled change: D t + const + noise
-            # a straight line through each stretch of shut valves (far more precise than
-            # window increments), combined by inverse variance
+            ok = shut.copy()
+            for k in range(1, self._lookback + 1):
+                ok[k:] &= shut[:-k]
+            ok[:self._lookback] = False
+            cs = np.concatenate([[0.0], np.cumsum(vol)])
+            y = p[: len(cs)] - cs
+            leak_rate = sgn * self._nRT / V * phi_unit  # dp/dt per unit leak conductance
             edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
-            slopes, variances = [], []
             for a, b in zip(edges[::2], edges[1::2], strict=True):
                 if b - a < w:
                     continue
@@ -287,31 +298,51 @@ class ValveIdentifier(Identifier):
                 yy = y[a:b + 1]
                 A = np.column_stack([tt - tt.mean(), np.ones_like(tt)])
                 coef, *_ = np.linalg.lstsq(A, yy, rcond=None)
-                dof = max(1, len(tt) - 2)
-                s2 = float(np.sum((yy - A @ coef) ** 2)) / dof
-                slopes.append(coef[0])
-                variances.append(s2 / float(np.sum((tt - tt.mean()) ** 2)))
-            if len(slopes) < 1:
-                continue
-            wts = 1.0 / np.asarray(variances)
-            out[ch] = float(np.sum(wts * np.asarray(slopes)) / np.sum(wts))
-            # between-stretch scatter counts too (drifts the straight line does not model)
-            spread = float(np.std(slopes, ddof=1) / np.sqrt(len(slopes))) if len(slopes) > 2 \
-                else 0.0
-            std[ch] = max(float(np.sqrt(1.0 / np.sum(wts))), spread)
-        return out, std
+                s2 = float(np.sum((yy - A @ coef) ** 2)) / max(1, len(tt) - 2)
+                row = [0.0, 0.0, float(np.mean(leak_rate[a:b])) * _LEAK_UNIT]
+                row[ch] = 1.0
+                rows.append(row)
+                rhs.append(coef[0])
+                var.append(s2 / float(np.sum((tt - tt.mean()) ** 2)))
+        D: list[float | None] = [None, None]
+        D_std = [np.nan, np.nan]
+        if not rows:
+            return D, D_std, None, np.nan
+        A = np.asarray(rows)
+        y = np.asarray(rhs)
+        wts = 1.0 / np.sqrt(np.asarray(var))
+        have = [bool(np.any(A[:, ch] > 0)) for ch in range(2)]
+        # the leak is separable only if the stretches see different seal flows
+        leak_ok = np.ptp(A[:, 2]) > 0.0 and len(rows) >= sum(have) + 1
+        cols = [ch for ch in range(2) if have[ch]] + ([2] if leak_ok else [])
+        Aw = A[:, cols] * wts[:, None]
+        sol, *_ = np.linalg.lstsq(Aw, y * wts, rcond=None)
+        if leak_ok and sol[-1] < 0.0:  # a leak cannot be negative: refit without it
+            cols = cols[:-1]
+            leak_ok = False
+            Aw = A[:, cols] * wts[:, None]
+            sol, *_ = np.linalg.lstsq(Aw, y * wts, rcond=None)
+        dof = max(1, len(y) - len(cols))
+        chi2 = float(np.sum((Aw @ sol - y * wts) ** 2)) / dof
+        cov = np.linalg.pinv(Aw.T @ Aw) * max(1.0, chi2)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        for j, c in enumerate(cols):
+            if c < 2:
+                D[c] = float(sol[j])
+                D_std[c] = float(sd[j])
+        if leak_ok:
+            return D, D_std, float(sol[-1]) * _LEAK_UNIT, float(sd[-1]) * _LEAK_UNIT
+        return D, D_std, None, np.nan
 
     @staticmethod
-    def _fix_D(theta: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-               D_fixed: tuple[list[float | None], list[float]]
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Hold D_a / D_b at their closed-valve estimates (a tight bound) where available."""
+    def _fix(theta: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+             fixed: dict[int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Hold parameters (index -> scaled value) within a negligible bound of a value."""
         theta, lo, hi = theta.copy(), lo.copy(), hi.copy()
-        for ch, D in enumerate(D_fixed[0]):
-            if D is not None:
-                theta[9 + ch] = D / _D_UNIT
-                lo[9 + ch] = theta[9 + ch] - 1e-6
-                hi[9 + ch] = theta[9 + ch] + 1e-6
+        for i, value in fixed.items():
+            theta[i] = value
+            lo[i] = value - 1e-6
+            hi[i] = value + 1e-6
         return theta, lo, hi
 
     def fit(self, data: Dataset, mask: np.ndarray | None = None) -> ValveIdentifier:
@@ -338,6 +369,7 @@ class ValveIdentifier(Identifier):
                                f"valve {name} never runs at full duty: its C and the top of its "
                                f"PWM curve are only separable through the curve's shape"]
         self.notes_ = list(getattr(self, "notes_", []))
+        self.max_duty_ = np.array([float(np.max(data.u[mask, i])) for i in range(4)])
         self.knots_ = default_knots() if self.knots is None else np.asarray(self.knots, float)
         self._prepare(data, mask)
         curves = np.tile(self.knots_, (4, 1))  # start: r(u) = u
@@ -345,10 +377,12 @@ class ValveIdentifier(Identifier):
         lo = np.array([0.01, 0.0, 0.01, 0.0, 0.01, 0.0, 0.01, 0.0, 0.0, -1e4, -1e4])
         hi = np.array([1000.0, 0.9, 1000.0, 0.9, 1000.0, 0.9, 1000.0, 0.9, 1000.0, 1e4, 1e4])
         sol = None
-        D_fixed = None
+        D, D_sd, leak, leak_sd = self._closed_stretches()
+        fixed = {9 + ch: D[ch] / _D_UNIT for ch in range(2) if D[ch] is not None}
+        if leak is not None:
+            fixed[8] = max(leak, 0.0) / _LEAK_UNIT
+        theta, lo, hi = self._fix(theta, lo, hi, fixed)
         for _ in range(max(1, self.iterations)):
-            D_fixed = self._closed_valve_D(theta[8] * _LEAK_UNIT)
-            theta, lo, hi = self._fix_D(theta, lo, hi, D_fixed)
             sol = least_squares(self._residuals, theta, bounds=(lo, hi), args=(curves,),
                                 x_scale="jac", method="trf", loss=self.loss,
                                 f_scale=self.f_scale)
@@ -366,8 +400,8 @@ class ValveIdentifier(Identifier):
         self.b_ = theta[1:8:2]
         self.leak_C_ = float(theta[8] * _LEAK_UNIT)
         self.D_ = np.array([theta[9], theta[10]]) * _D_UNIT
-        self.D_std_ = np.array([D_fixed[1][0] if D_fixed[0][0] is not None else np.nan,
-                                D_fixed[1][1] if D_fixed[0][1] is not None else np.nan])
+        self.D_std_ = np.array(D_sd, dtype=float)
+        self.leak_std_ = leak_sd
         self.curves_ = curves
         self.curve_ = np.maximum.accumulate(curves.mean(axis=0))
         res = sol.fun * 1e3
@@ -396,6 +430,14 @@ class ValveIdentifier(Identifier):
                     f"error; its bound is widened to cover zero")
         self.C_std_ = sd[0:8:2] * _C_UNIT
         self.b_std_ = sd[1:8:2]
+        from pneutune.control.constants import VALVES
+
+        for i, name in enumerate(VALVES):
+            if self.b_[i] < 1e-3 or self.b_[i] > lo[1] + hi[1] - 1e-3 or self.b_std_[i] > 0.1:
+                self.notes_.append(
+                    f"valve {name}: b is not identifiable from this log (estimate "
+                    f"{self.b_[i]:.3g} ± {self.b_std_[i]:.2g}); it needs charges or vents "
+                    f"through the fully open valve over a wide pressure range")
         self.fitted_ = True
         return self
 

@@ -1,0 +1,173 @@
+"""identify: recover the truth from simulated identification runs of plants that differ from the
+defaults (STYLE.md §6: one recover-the-truth suite), bad logs, model.yaml round trip.
+
+The truth is the plant.yaml each log was simulated from. Tolerances are issue 4's: C and b within
+5 %, F_C and b_v within 10 %, θ bounds containing the truth. The moving mass is not
+identifiable from 4 ms samples of these rigs (docs/identifiability.md): the tests require its
+interval to contain the truth and the model to say so, not a 5 % estimate.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pneutune.control.constants import VALVES
+from pneutune.control.identification_run import DEFAULT_DUTIES, simulate_identification
+from pneutune.control.model_config import load_model, save_model
+from pneutune.control.plant_config import PlantConfig
+from pneutune.identify.motion import smooth_sign
+from pneutune.identify.pipeline import identify
+
+VALVE_NAMES = list(VALVES)
+
+
+def _valves(C_scale, b, d_on, d_off, min_pulse):
+    return {name: {"C": 8.373e-9 * c, "b": bb, "delay_on": d_on, "delay_off": d_off,
+                   "min_pulse": min_pulse}
+            for name, c, bb in zip(VALVE_NAMES, C_scale, b, strict=True)}
+
+
+#: Three plants that between them vary friction ±40 %, C ±25 % per valve, b, the delays, mass
+#: and payload, a small seal leak, the constant disturbance terms and the sensor noise.
+VARIANTS = {
+    "stiff-friction-heavy": {
+        "friction": {"F_S": 105.0, "F_C": 70.0, "b_v": 4900.0, "v_s": 0.004},
+        "valves": _valves([1.25, 0.8, 1.1, 0.9], [0.25] * 4, 2.5e-3, 3.5e-3, 2.0e-3),
+        "payload": 1.0,
+    },
+    "light-friction-leaky": {
+        "friction": {"F_S": 45.0, "F_C": 30.0, "b_v": 2100.0, "v_s": 0.006},
+        "valves": _valves([0.8, 1.2, 0.95, 1.15], [0.15, 0.3, 0.2, 0.15], 1.5e-3, 2.0e-3,
+                          1.0e-3),
+        "mass": 0.8, "leak": {"C": 1.0e-11},
+        "sensors": {"x_noise": 1.0e-5, "p_noise": 600.0},
+    },
+    "disturbed-latched": {
+        "rig": {"pwm_update": "latched"},
+        "valves": _valves([1.1, 1.2, 0.75, 0.85], [0.35, 0.35, 0.22, 0.22], 2.0e-3, 3.0e-3,
+                          1.5e-3),
+        "payload": 1.136,
+        "disturbance": {"F_n": 5.0, "D_a": 150.0, "D_b": -100.0},
+    },
+}
+
+
+@pytest.fixture(scope="module", params=list(VARIANTS))
+def case(request, tmp_path_factory):
+    plant = PlantConfig().with_updates(VARIANTS[request.param])
+    folder = tmp_path_factory.mktemp(request.param)
+    log = folder / "run.mcap"
+    rec = simulate_identification(plant, seed=11)
+    rec.save(log, rig=plant.rig_metadata(), run={"seed": "11"})
+    return request.param, plant, identify(log), rec
+
+
+def test_valves_within_5_percent(case):
+    """Issue 4: C and b of every valve within 5 % of the plant's."""
+    name, plant, r, _ = case
+    for i, truth in enumerate(plant.valves.ordered()):
+        assert r.valves.C_[i] == pytest.approx(truth.C, rel=0.05), (name, VALVE_NAMES[i])
+        assert r.valves.b_[i] == pytest.approx(truth.b, rel=0.05), (name, VALVE_NAMES[i])
+
+
+def test_valve_ranges_contain_truth(case):
+    """The C and b ranges written for tune contain the plant's values."""
+    name, plant, r, _ = case
+    for v, truth in zip(r.model.valves.ordered(), plant.valves.ordered(), strict=True):
+        assert v.C_min <= truth.C <= v.C_max, name
+        assert v.b_min <= truth.b <= v.b_max, name
+
+
+def test_pwm_curve_matches_delays(case):
+    """The identified curve's dead zone and offset match the plant's valve timing: the dead
+    zone ends at min_pulse/T to the resolution of the protocol's duty sweep (the data hold no
+    finer information), and the offset is (delay_off - delay_on)/T (±0.015)."""
+    name, plant, r, _ = case
+    period = plant.rig.pwm_period
+    v = plant.valves.a_in
+    sw = r.valves.switching(period)
+    d0 = v.min_pulse / period
+    sweep = np.array(sorted(DEFAULT_DUTIES))
+    below = sweep[sweep <= d0 + 1e-9].max(initial=0.0)
+    above = sweep[sweep > d0 + 1e-9].min(initial=1.0)
+    assert below - 0.0126 <= sw["dead_zone"] <= above, (name, sw["dead_zone"], d0)
+    assert sw["offset"] == pytest.approx((v.delay_off - v.delay_on) / period, abs=0.015), name
+    duty, ratio = np.array(r.model.pwm.duty), np.array(r.model.pwm.ratio)
+    assert np.all(np.diff(ratio) >= 0) and ratio[0] == 0.0 and ratio[-1] == 1.0
+    assert np.all(np.diff(duty) >= 0)
+
+
+def test_friction_within_10_percent(case):
+    """Issue 4: F_C and b_v within 10 % of the plant's."""
+    name, plant, r, _ = case
+    assert r.friction.F_C_ == pytest.approx(plant.friction.F_C, rel=0.10), name
+    assert r.friction.b_v_ == pytest.approx(plant.friction.b_v, rel=0.10), name
+
+
+def test_theta_bounds_contain_truth(case):
+    """θ_min <= θ_true <= θ_max for every component. The true A_f is the smooth model's best
+    fit (Eqs. 3-4) to the plant's true friction force over the log's sliding samples
+    (/sim/truth, which identify itself never reads)."""
+    name, plant, r, rec = case
+    th = r.model.theta
+    v, F_f = rec.truth_[:, 0], rec.truth_[:, 2]
+    slide = np.abs(v) > 2e-3
+    A = np.column_stack([v[slide], smooth_sign(v[slide])])
+    (_, A_f_true), *_ = np.linalg.lstsq(A, F_f[slide], rcond=None)
+    d = plant.disturbance
+    truth = [plant.total_mass, d.F_n, plant.friction.b_v, A_f_true, d.D_a, d.D_b]
+    for i, t in enumerate(truth):
+        assert th.min[i] <= t <= th.max[i], (name, i, th.min[i], t, th.max[i])
+
+
+def test_mass_interval_and_honesty(case):
+    """The mass interval contains the truth; where the log cannot pin the mass down the model
+    says so in its notes (docs/identifiability.md) instead of reporting a precise number."""
+    name, plant, r, _ = case
+    lo, hi = r.model.mass_range
+    assert lo <= plant.total_mass <= hi, name
+    if hi / lo > 1.5:
+        assert any(n.startswith("mass: not identifiable") for n in r.model.notes), name
+
+
+def test_unpinnable_b_gets_an_honest_range(tmp_path):
+    """An exhaust valve with b = 0.12 never chokes from a 6 bar supply (that needs
+    p > p0/b = 8.4 bar), so its b is weakly determined: the estimate may miss 5 %, but the
+    range written to model.yaml must still contain the truth."""
+    plant = PlantConfig().with_updates(
+        {"valves": _valves([1.0, 1.0, 1.0, 1.0], [0.25, 0.12, 0.25, 0.12], 2e-3, 3e-3, 1.5e-3),
+         "sensors": {"p_noise": 600.0}})
+    rec = simulate_identification(plant, seed=5)
+    rec.save(tmp_path / "run.mcap", rig=plant.rig_metadata(), run={"seed": "5"})
+    r = identify(tmp_path / "run.mcap")
+    for name in ("a_out", "b_out"):
+        v = getattr(r.model.valves, name)
+        assert v.b_min <= 0.12 <= v.b_max, (name, v.b_min, v.b, v.b_max)
+
+
+def test_known_mass_is_used(tmp_path):
+    """--mass: θ1 is the given mass with its tolerance."""
+    r = identify(Path(__file__).resolve().parents[1] / "data" / "run.mcap", mass=1.05,
+                 mass_tol=0.05)
+    assert r.model.mass == 1.05
+    assert r.model.theta.min[0] == pytest.approx(0.9975) and r.model.theta.max[0] == 1.1025
+
+
+def test_validation_nrmse_is_small(case):
+    """The identified model, driven by the logged duties on the held-out fifth of the log from
+    the measured state every 2 s, follows it: NRMSE of x below 0.05 and of the pressures below
+    0.2 (0.019 / 0.077 / 0.072 on data/run.mcap)."""
+    name, _, r, _ = case
+    assert r.model.fit.nrmse_x < 0.05, name
+    assert r.model.fit.nrmse_p_a < 0.2 and r.model.fit.nrmse_p_b < 0.2, name
+
+
+def test_model_yaml_round_trips(case, tmp_path):
+    """model.yaml written by identify loads back equal through its schema (contract 3)."""
+    _, _, r, _ = case
+    path = tmp_path / "model.yaml"
+    save_model(r.model, path)
+    assert load_model(path) == r.model
