@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from pneutune.control import darc
 from pneutune.control.closed_loop import simulate_scenario
 from pneutune.control.controller_config import load_controller, pack

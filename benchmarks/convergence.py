@@ -11,6 +11,7 @@ periods for several ``sim.dt`` against a 10 us reference, for both PWM update mo
 from __future__ import annotations
 
 import numpy as np
+
 from pneutune.control.identification_run import position_loop
 from pneutune.control.plant_config import PlantConfig
 from pneutune.control.rig import SimRig

@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from pneutune.control.constants import RHO0, T_REF
 from pneutune.control.controller_config import ControllerConfig
 

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+
 from pneutune.control.controller_config import (
     CFG_GAMMA,
     CFG_K2,

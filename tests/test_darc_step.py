@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from darc_oracle import DarcOracle, f_pd
+
 from pneutune.control.controller_config import CFG_LAYOUT, load_controller, pack
 from pneutune.control.darc import (
     MEAS_SIZE,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from pneutune.control.constants import RHO0, T_REF
 from pneutune.control.duty import (
     CASE_A_FILL,

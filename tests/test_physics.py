@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from scipy.integrate import solve_ivp
+
 from pneutune.control import plant
 from pneutune.control.constants import A_IN, A_OUT, B_IN, B_OUT, RHO0, T_REF
 from pneutune.control.flow import LIN_WIDTH, iso6358_flow, signed_flow
@@ -36,7 +38,6 @@ from pneutune.control.plant_params import (
 )
 from pneutune.control.rig import SimRig
 from pneutune.control.valves import effective_open_fraction
-from scipy.integrate import solve_ivp
 
 #: Sensors without noise or quantisation: readings equal the true state.
 QUIET = {"sensors": {"x_noise": 0.0, "x_step": 0.0, "p_noise": 0.0}}

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+
 from pneutune.control.errors import ConfigError
 from pneutune.control.plant_config import PlantConfig, load_plant
 

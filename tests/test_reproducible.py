@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
 from pneutune.control.runlog import read_run_log
 
 SIMULATE = Path(sys.executable).with_name("simulate")

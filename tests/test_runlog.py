@@ -22,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
+
 from pneutune.control.constants import LOG_SCHEMA, RIG_KEYS
 from pneutune.control.errors import (
     EmptyLogError,
