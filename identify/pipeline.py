@@ -127,7 +127,7 @@ def identify(path: str | os.PathLike[str], holdout: float = 0.2, mass: float | N
 
 #: Slow sliding samples (2-20 mm/s) below which the Coulomb level is poorly separated from the
 #: viscous term, and the Coulomb error then allowed for (relative to F_C).
-LOW_SPEED_SAMPLES, LOW_SPEED_FC_ERROR = 2000, 0.3
+LOW_SPEED_SAMPLES, LOW_SPEED_FC_ERROR = 500, 0.1
 
 
 def _low_speed_margin(data: Dataset, friction: FrictionIdentifier,
