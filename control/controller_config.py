@@ -221,6 +221,8 @@ class ProvenanceConfig(_Strict):
     objective: float | None = Field(None, description="Objective value of that trial")
     created: str | None = Field(None, description="ISO 8601 creation time")
     version: str | None = Field(None, description="pneutune version that wrote the file")
+    seed: int | None = Field(None, ge=0, description="Added by pneutune: seed of the tune study "
+                             "(plant draws, sensor noise, samplers)")
 
 
 class ControllerConfig(_Strict):

@@ -1,0 +1,144 @@
+"""tune's storage (issue 5 §3): resume after kill -9, several workers on one journal/SQLite study.
+
+Each test runs the real ``tune`` command in a subprocess with the quick objective settings
+(``tune_helpers.QUICK``: one 4 s scenario on two plants).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import optuna
+import pytest
+from tune_helpers import (
+    QUICK,
+    TUNE,
+    load_study,
+    only_study_name,
+    run_tune,
+    trial_table,
+    write_truth_model,
+)
+
+from pneutune.tune.study import clear_stale_journal_lock, repair_journal
+
+FINISHED = ("COMPLETE", "PRUNED")
+
+
+def _finished(study: optuna.Study) -> int:
+    return sum(1 for t in study.get_trials(deepcopy=False) if t.state.name in FINISHED)
+
+
+def _wait_for(journal: Path, n: int, proc: subprocess.Popen, timeout: float = 120.0) -> str:
+    """Wait until the journal's one study has >= n finished trials; return its name."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if proc.poll() is not None:
+            raise AssertionError(f"tune ended early ({proc.returncode}): {proc.stderr.read()}")
+        if journal.exists() and journal.stat().st_size > 0:
+            try:
+                name = only_study_name(str(journal))
+                if _finished(load_study(str(journal), name)) >= n:
+                    return name
+            except AssertionError:
+                pass
+        time.sleep(0.05)
+    raise AssertionError(f"fewer than {n} finished trials after {timeout} s")
+
+
+def test_resume_after_kill_9_keeps_every_finished_trial(tmp_path: Path) -> None:
+    model = write_truth_model(tmp_path)
+    out = tmp_path / "out"
+    journal = out / "study.journal"
+    args = ["--model", str(model), "--trials", "60", "--out", str(out), *QUICK]
+    proc = subprocess.Popen([*TUNE, *args, "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        name = _wait_for(journal, 8, proc)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    before = trial_table(load_study(str(journal), name))
+    done_before = {n: row for n, row in before.items() if row[0] in FINISHED}
+    assert 8 <= len(done_before) < 60  # killed mid-study
+
+    code, res, err = run_tune(args)
+    assert code == 0, err
+    after = trial_table(load_study(str(journal), name))
+    for n, row in done_before.items():  # no finished trial lost or changed
+        assert after[n] == row
+    states = [row[0] for row in after.values()]
+    assert sum(s in FINISHED for s in states) == 60  # the remainder was completed
+    assert "RUNNING" not in states
+    # a trial killed while running is failed on resume, not counted, not left running
+    running_before = [n for n, row in before.items() if row[0] == "RUNNING"]
+    assert res is not None and res["trials"]["leftovers_failed"] == len(running_before)
+    for n in running_before:
+        assert after[n][0] == "FAIL"
+
+
+@pytest.mark.parametrize("storage", ["journal", "sqlite"])
+def test_two_workers_give_unique_complete_trials(storage: str, tmp_path: Path) -> None:
+    model = write_truth_model(tmp_path)
+    out = tmp_path / "out"
+    url = str(out / "study.journal") if storage == "journal" else f"sqlite:///{out}/study.db"
+    n = 24
+    code, res, err = run_tune(["--model", str(model), "--trials", str(n), "--out", str(out),
+                               "--storage", url, "--workers", "2", *QUICK])
+    assert code == 0, err
+    assert res is not None
+    study = load_study(url, res["study"])
+    trials = study.get_trials(deepcopy=False)
+    states = [t.state.name for t in trials]
+    # complete + pruned reaches N; two racing workers may overshoot by at most one
+    assert n <= sum(s in FINISHED for s in states) <= n + 1
+    assert all(s in FINISHED for s in states), states
+    assert len({t.number for t in trials}) == len(trials)
+    keys = {tuple(sorted(t.params.items())) for t in trials}
+    assert len(keys) == len(trials)  # no parameter set evaluated twice
+    assert all(len(t.params) == 14 for t in trials)
+    assert trials[0].system_attrs.get("fixed_params") is not None  # the paper's, enqueued
+
+
+def test_killing_tune_stops_its_workers(tmp_path: Path) -> None:
+    """Workers exit when their parent dies: the journal stops growing after kill -9."""
+    model = write_truth_model(tmp_path)
+    out = tmp_path / "out"
+    journal = out / "study.journal"
+    proc = subprocess.Popen([*TUNE, "--model", str(model), "--trials", "100000", "--out",
+                             str(out), "--workers", "2", *QUICK], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(journal, 4, proc)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate()
+    time.sleep(2.0)  # a worker finishes its current trial (~20 ms), then sees the parent gone
+    size = journal.stat().st_size
+    time.sleep(1.5)
+    assert journal.stat().st_size == size
+
+
+def test_a_torn_journal_line_is_dropped(tmp_path: Path) -> None:
+    path = tmp_path / "j"
+    path.write_bytes(b'{"a":1}\n{"b":2}\n{"c":')
+    assert repair_journal(path)
+    assert path.read_bytes() == b'{"a":1}\n{"b":2}\n'
+    assert not repair_journal(path)
+
+
+def test_a_stale_journal_write_lock_is_removed(tmp_path: Path) -> None:
+    """Optuna's symlink lock left by a writer killed inside an append (else a 30 s wait)."""
+    journal = tmp_path / "study.journal"
+    journal.write_bytes(b"")
+    os.symlink(journal, tmp_path / "study.journal.lock")
+    t0 = time.monotonic()
+    assert clear_stale_journal_lock(journal, wait_s=0.2)
+    assert time.monotonic() - t0 < 5.0
+    assert not os.path.lexists(tmp_path / "study.journal.lock")
+    assert not clear_stale_journal_lock(journal, wait_s=0.2)

@@ -1,0 +1,473 @@
+"""The tuning objective: closed-loop simulation of the scenarios on plants drawn from the model.
+
+For a candidate controller and every scenario s (default: the four Table-1 scenarios, then
+``disturbance-0.5hz``) and plant draw d (:func:`pneutune.tune.plants.draw_plants`; the same
+draws for every trial -- common random numbers, so trials are compared on the same plants and
+the same sensor noise), one run of :func:`pneutune.control.closed_loop.simulate_scenario` gives
+the paper's indices and the run's health. Its cost, dimensionless::
+
+    c(s, d) = ½ (E_p / E_p* + E_rms / E_rms*)            tracking, * = the paper's Table 1
+            + ½ · max(0, switches/s - 20) / 20           valve chattering (mode switches)
+            + pressure penalty                            outside [½ p0, limits.p_max]
+            + end-stop penalty                            time within 0.2 mm of a stroke end
+            + 1 if θ̂ ever left [θ_min, θ_max]             (cannot happen; projection, Eq. 12)
+
+``E_p*, E_rms*`` are the Table-1 figures of the scenario (the disturbance scenario has none and
+uses those of the 0.5 Hz sine it is built on), so a tracking term of 1 means "as good as the
+paper's rig". Per scenario the draws are aggregated by the CVaR at level α (default 0.25: the
+mean of the worst quarter of the draws -- the worst two of eight); the objective is the mean of
+the scenarios' CVaRs.
+
+Why CVaR and not the worst case: with a fixed, finite set of draws the maximum is set by a
+single plant (usually a corner draw) and rewards tuning to that one plant; CVaR_α is a coherent
+risk measure between the mean (α = 1) and the worst case (α → 0) that averages the tail. It
+equals the worst case when α·draws <= 1 (set ``cvar_alpha`` small for a minimax objective).
+The worst case per scenario is recorded beside it (``trial.user_attrs["scenarios"]``).
+
+Failures and pruning: a run that goes unstable (non-finite plant state), is aborted because
+|e1| exceeded ``abort_error`` (5 mm by default: the paper's errors are below 0.6 mm, the initial
+transient of the paper's gains below 1.2 mm) or gives non-finite indices ends the trial as
+*pruned* (reported value :data:`FAIL_VALUE` at that step, reason in ``user_attrs["failure"]``),
+never as an exception. After each scenario the running mean is reported
+(``trial.report(value, step=scenario index)``) and the pruner may stop the trial there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import multiprocessing
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import optuna
+
+from pneutune.control.closed_loop import (
+    ClosedLoopResult,
+    Metrics,
+    scenario_plant,
+    simulate_scenario,
+)
+from pneutune.control.controller_config import ControllerConfig, pack
+from pneutune.control.errors import PneutuneError
+from pneutune.control.model_config import ModelConfig
+from pneutune.control.scenarios import GROUPS, SCENARIOS, Scenario, resolve_scenarios
+
+from .plants import PlantDraw, draw_plants
+from .space import SearchSpace, controller_from_params, search_space
+
+#: Default scenarios: Table 1, then the disturbance run (DESIGN.md).
+DEFAULT_SCENARIOS: tuple[str, ...] = (*GROUPS["table1"], "disturbance-0.5hz")
+#: Value reported for a trial stopped by an unstable or aborted run.
+FAIL_VALUE: float = 1.0e3
+
+
+class TuneError(PneutuneError, ValueError):
+    """Bad tuning settings (scenario names, draw count, levels)."""
+
+
+@dataclass(frozen=True)
+class ObjectiveSettings:
+    """What the objective simulates and how it scores (stored with the study).
+
+    Attributes
+    ----------
+    scenarios : tuple of str
+        Scenario names, in evaluation (and pruning) order.
+    n_draws : int
+        Plants: the nominal, two corners, the rest a Latin hypercube.
+    cvar_alpha : float
+        CVaR level over the draws, in (0, 1].
+    abort_error : float
+        A run whose measured |e1| exceeds this stops and fails the trial [m].
+    duration : float or None
+        Override of every scenario's duration [s] (tests); None keeps the scenarios' own.
+    switches_free : float
+        Mode switches per second without penalty [1/s].
+    switches_weight : float
+        Penalty per ``switches_free`` above the free allowance [-].
+    p_low_fraction : float
+        Lowest chamber pressure without penalty, as a fraction of p0 [-].
+    pressure_weight : float
+        Penalty per bar outside [p_low, limits.p_max], plus the same once for any excursion
+        [1/bar].
+    end_stop_weight : float
+        Penalty per second within 0.2 mm of a stroke end, plus the same once for any contact
+        [1/s].
+    """
+
+    scenarios: tuple[str, ...] = DEFAULT_SCENARIOS
+    n_draws: int = 8
+    cvar_alpha: float = 0.25
+    abort_error: float = 5.0e-3
+    duration: float | None = None
+    switches_free: float = 20.0
+    switches_weight: float = 0.5
+    p_low_fraction: float = 0.5
+    pressure_weight: float = 1.0
+    end_stop_weight: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in self.scenarios:
+            if name not in SCENARIOS:
+                resolve_scenarios(name)  # raises with the list of known names
+        if not self.scenarios:
+            raise TuneError("at least one scenario must be given")
+        if self.n_draws < 1:
+            raise TuneError(f"n_draws >= 1 must hold, got {self.n_draws}")
+        if not 0.0 < self.cvar_alpha <= 1.0:
+            raise TuneError(f"0 < cvar_alpha <= 1 must hold, got {self.cvar_alpha}")
+        if not self.abort_error > 0.0:
+            raise TuneError(f"abort_error > 0 must hold, got {self.abort_error}")
+        if self.duration is not None and not self.duration > 0.0:
+            raise TuneError(f"duration > 0 must hold, got {self.duration}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (JSON-able)."""
+        out = dataclasses.asdict(self)
+        out["scenarios"] = list(self.scenarios)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ObjectiveSettings:
+        """Inverse of :meth:`to_dict`."""
+        data = dict(data)
+        data["scenarios"] = tuple(data["scenarios"])
+        return cls(**data)
+
+
+def cvar(values: Sequence[float], alpha: float) -> float:
+    """Conditional value at risk: the mean of the worst ``ceil(alpha n)`` values (at least one).
+
+    Parameters
+    ----------
+    values : sequence of float
+        Costs (higher is worse).
+    alpha : float
+        Tail fraction in (0, 1].
+
+    Returns
+    -------
+    float
+    """
+    v = np.sort(np.asarray(values, dtype=float))[::-1]
+    k = max(1, math.ceil(alpha * v.size - 1e-12))
+    return float(np.mean(v[:k]))
+
+
+def reference_figures(scenario: Scenario) -> tuple[float, float]:
+    """The (E_p, E_rms) [mm] a scenario's tracking is normalised by (Table 1)."""
+    if scenario.paper is not None:
+        return scenario.paper
+    return SCENARIOS["sine-0.5hz"].paper  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class RunCost:
+    """The cost of one closed-loop run and its parts (module docstring).
+
+    ``cost`` is None when the run failed (``failure`` says why).
+    """
+
+    scenario: str
+    draw: int
+    metrics: Metrics
+    cost: float | None
+    tracking: float = float("nan")
+    chatter: float = 0.0
+    pressure: float = 0.0
+    end_stop: float = 0.0
+    theta: float = 0.0
+    failure: str | None = None
+
+
+def run_cost(metrics: Metrics, scenario: Scenario, draw: int, p0: float, p_max: float,
+             settings: ObjectiveSettings) -> RunCost:
+    """Score one run (module docstring).
+
+    Parameters
+    ----------
+    metrics : Metrics
+        From :func:`simulate_scenario`.
+    scenario : Scenario
+    draw : int
+        Draw index.
+    p0, p_max : float
+        Ambient pressure and the controller's pressure limit [Pa abs].
+    settings : ObjectiveSettings
+
+    Returns
+    -------
+    RunCost
+    """
+    m = metrics
+    if m.status != "ok":
+        return RunCost(scenario.name, draw, m, None, failure=m.status)
+    numbers = (m.E_p_mm, m.E_rms_mm, m.switches_per_s, m.p_a_max_Pa, m.p_b_max_Pa, m.p_a_min_Pa,
+               m.p_b_min_Pa, m.end_stop_s)
+    if not all(math.isfinite(x) for x in numbers):
+        return RunCost(scenario.name, draw, m, None, failure="non-finite metrics")
+    ep, erms = reference_figures(scenario)
+    tracking = 0.5 * (m.E_p_mm / ep + m.E_rms_mm / erms)
+    chatter = settings.switches_weight * max(0.0, m.switches_per_s - settings.switches_free) \
+        / settings.switches_free
+    p_low = settings.p_low_fraction * p0
+    excess = (max(0.0, max(m.p_a_max_Pa, m.p_b_max_Pa) - p_max)
+              + max(0.0, p_low - min(m.p_a_min_Pa, m.p_b_min_Pa)))
+    pressure = settings.pressure_weight * (excess / 1e5 + (1.0 if excess > 0.0 else 0.0))
+    end_stop = settings.end_stop_weight * (m.end_stop_s + (1.0 if m.end_stop_s > 0.0 else 0.0))
+    theta = 0.0 if m.theta_in_bounds else 1.0
+    total = tracking + chatter + pressure + end_stop + theta
+    return RunCost(scenario.name, draw, m, total, tracking, chatter, pressure, end_stop, theta)
+
+
+@dataclass
+class Evaluation:
+    """A controller scored on the scenarios x draws.
+
+    Attributes
+    ----------
+    value : float or None
+        The objective (mean over scenarios of the CVaR over draws); None if a run failed or the
+        evaluation was stopped early.
+    running : list of float
+        The running mean after each scenario (what is reported to the pruner).
+    scenario_cvar, scenario_worst : dict
+        Per scenario: CVaR and maximum of the draws' costs.
+    runs : dict
+        ``(scenario, draw) -> RunCost``.
+    failure : str or None
+        Why the evaluation failed.
+    stopped : bool
+        The ``report`` callback asked to stop.
+    """
+
+    value: float | None = None
+    running: list[float] = field(default_factory=list)
+    scenario_cvar: dict[str, float] = field(default_factory=dict)
+    scenario_worst: dict[str, float] = field(default_factory=dict)
+    runs: dict[tuple[str, int], RunCost] = field(default_factory=dict)
+    failure: str | None = None
+    stopped: bool = False
+
+    def draw_totals(self) -> dict[int, float]:
+        """Per draw, the mean cost over the scenarios evaluated (None-cost runs excluded)."""
+        acc: dict[int, list[float]] = {}
+        for (_, d), rc in self.runs.items():
+            if rc.cost is not None:
+                acc.setdefault(d, []).append(rc.cost)
+        return {d: float(np.mean(v)) for d, v in sorted(acc.items())}
+
+    def nominal_metrics(self) -> dict[str, dict[str, Any]]:
+        """The metrics on draw 0 (the nominal plant), per scenario."""
+        return {s: rc.metrics.as_dict() for (s, d), rc in self.runs.items() if d == 0}
+
+
+class TuneObjective:
+    """The objective for one model, seed and settings (module docstring).
+
+    Building it draws the plants and merges each scenario's changes into each plant once;
+    calling it on an Optuna trial suggests the parameters, builds the controller and scores it.
+
+    Parameters
+    ----------
+    model : ModelConfig
+        The identified model.
+    seed : int
+        Seed of the plant draws and the sensor noise (>= 0).
+    settings : ObjectiveSettings, optional
+    jobs : int
+        Processes that run the draws of a scenario in parallel (1: in this process). The runs
+        are seeded per draw, so the values do not depend on ``jobs``; a trial's wall time
+        drops by up to ``jobs``. Use as a context manager (or call :meth:`close`) to stop them.
+    """
+
+    def __init__(self, model: ModelConfig, seed: int,
+                 settings: ObjectiveSettings | None = None, jobs: int = 1) -> None:
+        if jobs < 1:
+            raise TuneError(f"jobs >= 1 must hold, got {jobs}")
+        self.jobs = int(jobs)
+        self.model = model
+        self.seed = int(seed)
+        self.settings = settings if settings is not None else ObjectiveSettings()
+        self.space: SearchSpace = search_space(model)
+        self.draws: tuple[PlantDraw, ...] = draw_plants(model, self.settings.n_draws, self.seed)
+        scen = [SCENARIOS[n] for n in self.settings.scenarios]
+        if self.settings.duration is not None:
+            scen = [dataclasses.replace(s, duration=self.settings.duration) for s in scen]
+        self.scenarios: tuple[Scenario, ...] = tuple(scen)
+        # Each scenario's plant changes merged once per draw; the runs get the scenario without
+        # them (simulate_scenario would merge them again on every call otherwise).
+        self._plants = {(s.name, d.index): scenario_plant(d.plant, s)
+                        for s in self.scenarios for d in self.draws}
+        self._bare = {s.name: dataclasses.replace(s, plant_updates={}) for s in self.scenarios}
+        self._pool: Any = None
+        self._run_seconds: dict[tuple[str, int], float] = {}
+        if self.jobs > 1:
+            ctx = multiprocessing.get_context("spawn")
+            self._pool = ctx.Pool(min(self.jobs, len(self.draws)), initializer=_pool_init,
+                                  initargs=(model.to_dict(), self.seed, self.settings.to_dict()))
+
+    def _parallel_runs(self, cfg_json: str, scenario: str) -> list[Metrics]:
+        """The metrics of every draw of a scenario, run in the draw processes.
+
+        Runs are handed out longest first (by the last measured wall time of each run), so that
+        a slow draw (a stiff plant) does not start last and leave the other processes idle; the
+        results are put back in draw order, and do not depend on the order.
+        """
+        order = sorted(range(len(self.draws)),
+                       key=lambda i: -self._run_seconds.get((scenario, i), 0.0))
+        tasks = [(cfg_json, scenario, i) for i in order]
+        out: list[Metrics | None] = [None] * len(self.draws)
+        for i, (m, seconds) in zip(order, self._pool.map(_pool_run, tasks, chunksize=1),
+                                   strict=True):
+            out[i] = Metrics(**m)
+            self._run_seconds[(scenario, i)] = seconds
+        return out  # type: ignore[return-value]
+
+    def close(self) -> None:
+        """Stop the draw processes (if any)."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool.join()
+            self._pool = None
+
+    def __enter__(self) -> TuneObjective:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def simulate(self, controller: ControllerConfig, scenario: Scenario, draw: PlantDraw,
+                 cfg_vec: np.ndarray | None = None, abort: bool = True) -> ClosedLoopResult:
+        """One run of ``controller`` on a scenario and draw (the plant's own noise seed).
+
+        Returns
+        -------
+        ClosedLoopResult
+        """
+        plant = self._plants[(scenario.name, draw.index)]
+        return simulate_scenario(controller, self._bare[scenario.name], plant, seed=None,
+                                 abort_error=self.settings.abort_error if abort else np.inf,
+                                 cfg_vec=cfg_vec)
+
+    def evaluate(self, controller: ControllerConfig,
+                 report: Callable[[int, float], bool] | None = None,
+                 stop_on_failure: bool = True) -> Evaluation:
+        """Score ``controller`` on every scenario and draw.
+
+        Parameters
+        ----------
+        controller : ControllerConfig
+        report : callable, optional
+            ``report(step, running_value) -> stop`` after each scenario but the last.
+        stop_on_failure : bool
+            Stop at the first failed run (tuning); False runs everything (reports).
+
+        Returns
+        -------
+        Evaluation
+        """
+        st = self.settings
+        ev = Evaluation()
+        vec = pack(controller)
+        p0 = controller.rig.p0
+        p_max = controller.limits.p_max
+        cfg_json = json.dumps(controller.to_dict()) if self._pool is not None else ""
+        for step, sc in enumerate(self.scenarios):
+            if self._pool is not None:  # all draws of the scenario at once, results in order
+                metrics = self._parallel_runs(cfg_json, sc.name)
+            else:
+                metrics = None
+            costs = []
+            for d in self.draws:
+                m = metrics[d.index] if metrics is not None else \
+                    self.simulate(controller, sc, d, vec).metrics
+                rc = run_cost(m, sc, d.index, p0, p_max, st)
+                ev.runs[(sc.name, d.index)] = rc
+                if rc.cost is None:
+                    if ev.failure is None:
+                        ev.failure = f"{rc.failure} in {sc.name} on draw {d.index} ({d.label})"
+                    if stop_on_failure:
+                        return ev
+                    continue
+                costs.append(rc.cost)
+            if len(costs) == len(self.draws):
+                ev.scenario_cvar[sc.name] = cvar(costs, st.cvar_alpha)
+                ev.scenario_worst[sc.name] = float(max(costs))
+            if ev.failure is None:
+                ev.running.append(float(np.mean(list(ev.scenario_cvar.values()))))
+                last = step == len(self.scenarios) - 1
+                if report is not None and not last and report(step, ev.running[-1]):
+                    ev.stopped = True
+                    return ev
+        if ev.failure is None:
+            ev.value = ev.running[-1]
+        return ev
+
+    def controller(self, params: dict[str, float]) -> ControllerConfig:
+        """The controller of a parameter set on this model."""
+        return controller_from_params(self.model, params)
+
+    def __call__(self, trial: optuna.Trial) -> float:
+        """Score a trial (raises :class:`optuna.TrialPruned` when pruned or failed)."""
+        params = self.space.suggest(trial)
+        controller = self.controller(params)
+
+        def report(step: int, value: float) -> bool:
+            trial.report(value, step)
+            return trial.should_prune()
+
+        ev = self.evaluate(controller, report=report)
+        if ev.failure is not None:
+            trial.set_user_attr("failure", ev.failure)
+            trial.report(FAIL_VALUE, len(ev.scenario_cvar))
+            raise optuna.TrialPruned(ev.failure)
+        if ev.stopped:
+            raise optuna.TrialPruned(f"pruned after {len(ev.running)} scenario(s)")
+        trial.set_user_attr("scenarios", {
+            s: {"cvar": ev.scenario_cvar[s], "worst": ev.scenario_worst[s],
+                "nominal_E_p_mm": ev.runs[(s, 0)].metrics.E_p_mm,
+                "nominal_E_rms_mm": ev.runs[(s, 0)].metrics.E_rms_mm,
+                "nominal_switches_per_s": ev.runs[(s, 0)].metrics.switches_per_s}
+            for s in ev.scenario_cvar})
+        totals = ev.draw_totals()
+        trial.set_user_attr("worst_draw", max(totals, key=lambda d: totals[d]))
+        if ev.value is None:  # pragma: no cover - evaluate() sets it whenever nothing failed
+            raise RuntimeError(f"trial {trial.number}: evaluation ended without a value")
+        return ev.value
+
+
+# Per-process state of the draw processes (``jobs`` > 1): the objective built once by the pool
+# initializer and the last controller (a trial sends the same one for all its runs).
+_POOL_STATE: dict[str, Any] = {}
+
+
+def _pool_init(model_data: dict[str, Any], seed: int, settings_data: dict[str, Any]) -> None:
+    """Initializer of a draw process: build the same objective (plants) as the parent."""
+    model = ModelConfig.model_validate(model_data)
+    _POOL_STATE["objective"] = TuneObjective(model, seed, ObjectiveSettings.from_dict(
+        settings_data))
+    _POOL_STATE["cfg_json"] = None
+
+
+def _pool_run(task: tuple[str, str, int]) -> tuple[dict[str, Any], float]:
+    """One run in a draw process: (controller JSON, scenario, draw) -> (metrics as a dict, wall
+    time of the run [s])."""
+    t0 = time.perf_counter()
+    cfg_json, scenario, draw = task
+    obj: TuneObjective = _POOL_STATE["objective"]
+    if _POOL_STATE["cfg_json"] != cfg_json:
+        cfg = ControllerConfig.model_validate_json(cfg_json)
+        _POOL_STATE.update(cfg_json=cfg_json, cfg=cfg, vec=pack(cfg))
+    sc = next(s for s in obj.scenarios if s.name == scenario)
+    res = obj.simulate(_POOL_STATE["cfg"], sc, obj.draws[draw], _POOL_STATE["vec"])
+    return res.metrics.as_dict(), time.perf_counter() - t0
+
+
+__all__ = ["DEFAULT_SCENARIOS", "FAIL_VALUE", "Evaluation", "ObjectiveSettings", "RunCost",
+           "TuneError", "TuneObjective", "cvar", "reference_figures", "run_cost"]

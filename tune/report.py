@@ -1,0 +1,296 @@
+"""report.md of a tuning run: Table-1 comparison, robustness, history and importance plots.
+
+The tuned controller and the paper's (``data/controller-paper.yaml``) are both scored by the
+same :class:`~pneutune.tune.objective.TuneObjective` (same scenarios, plant draws and sensor
+noise; every run, no early stop), and compared on the nominal plant (draw 0) and on the worst
+draw (the draw where the tuned controller's mean cost over the scenarios is highest). Plots:
+the optimisation history (complete trials, best so far, pruned trials at their last reported
+value) and the parameter importances by Optuna's PED-ANOVA evaluator (no plotly, no sklearn).
+Images are written atomically (``control/atomic.py``) with matplotlib's Agg backend.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import optuna
+from optuna.trial import FrozenTrial, TrialState
+
+from pneutune.control.atomic import atomic_open, atomic_write_text
+from pneutune.control.controller_config import ControllerConfig
+from pneutune.control.simulate_cli import format_table
+
+from .objective import FAIL_VALUE, Evaluation, TuneObjective
+from .space import params_from_controller
+
+#: Where the paper's controller lives in the repository.
+PAPER_CONTROLLER: Path = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
+
+
+@dataclass
+class Comparison:
+    """Tuned and paper controllers scored on every scenario and draw.
+
+    Attributes
+    ----------
+    tuned, paper : Evaluation
+    worst_draw : int
+        Index of the draw where the tuned controller does worst.
+    """
+
+    tuned: Evaluation
+    paper: Evaluation
+    worst_draw: int
+
+    def table(self, which: str, draw: int) -> dict[str, dict[str, Any]]:
+        """Per scenario, the metrics of ``which`` (``tuned`` or ``paper``) on ``draw``."""
+        ev = self.tuned if which == "tuned" else self.paper
+        return {s: rc.metrics.as_dict() for (s, d), rc in ev.runs.items() if d == draw}
+
+    def summary(self) -> dict[str, Any]:
+        """Plain data for ``--json``."""
+        return {
+            "objective": {"tuned": self.tuned.value, "paper": self.paper.value},
+            "worst_draw": self.worst_draw,
+            "nominal": {"tuned": self.table("tuned", 0), "paper": self.table("paper", 0)},
+            "worst": {"tuned": self.table("tuned", self.worst_draw),
+                      "paper": self.table("paper", self.worst_draw)},
+        }
+
+
+def compare(objective: TuneObjective, tuned: ControllerConfig,
+            paper: ControllerConfig) -> Comparison:
+    """Score both controllers on every scenario and draw (no early stop)."""
+    ev_t = objective.evaluate(tuned, stop_on_failure=False)
+    ev_p = objective.evaluate(paper, stop_on_failure=False)
+    totals = ev_t.draw_totals()
+    worst = max(totals, key=lambda d: totals[d]) if totals else 0
+    return Comparison(ev_t, ev_p, worst)
+
+
+def _save(fig: plt.Figure, path: Path) -> None:
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, format="png", dpi=110)
+    plt.close(fig)
+
+
+def plot_history(study: optuna.Study, path: Path) -> Path:
+    """Objective of each trial and the best so far (PNG)."""
+    trials = study.get_trials(deepcopy=False)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    done = [t for t in trials if t.state == TrialState.COMPLETE]
+    pruned = [(t.number, t.intermediate_values[max(t.intermediate_values)])
+              for t in trials if t.state == TrialState.PRUNED and t.intermediate_values]
+    pr_ok = [(n, v) for n, v in pruned if v < FAIL_VALUE]
+    if pr_ok:
+        ax.scatter(*zip(*pr_ok, strict=True), s=10, marker="x", color="0.6",
+                   label="pruned (last reported value)")
+    if done:
+        x = [t.number for t in done]
+        y = [t.value for t in done]
+        ax.scatter(x, y, s=14, color="C0", label="complete")
+        order = np.argsort(x)
+        best = np.minimum.accumulate(np.asarray(y)[order])
+        ax.step(np.asarray(x)[order], best, where="post", color="C3", label="best so far")
+    n_fail = sum(1 for _, v in pruned if v >= FAIL_VALUE)
+    ax.set_xlabel("trial")
+    ax.set_ylabel("objective (1 = the paper's Table 1)")
+    ax.set_yscale("log")
+    ax.set_title(f"optimisation history ({len(done)} complete, {len(pruned)} pruned of which "
+                 f"{n_fail} unstable/aborted)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+    return path
+
+
+def importances(study: optuna.Study) -> dict[str, float] | None:
+    """PED-ANOVA parameter importances (normalised), or None with fewer than 2 complete trials
+    or when the evaluator cannot run."""
+    if len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))) < 2:
+        return None
+    try:
+        return optuna.importance.get_param_importances(
+            study, evaluator=optuna.importance.PedAnovaImportanceEvaluator())
+    except (ValueError, RuntimeError, ZeroDivisionError):
+        return None
+
+
+def plot_importance(imp: dict[str, float] | None, path: Path) -> Path:
+    """Horizontal bar chart of the importances (PNG)."""
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    if imp:
+        names = list(imp)[::-1]
+        ax.barh(names, [imp[n] for n in names], color="C0")
+        ax.set_xlabel("importance (PED-ANOVA, normalised)")
+    else:
+        ax.text(0.5, 0.5, "not enough complete trials", ha="center", va="center")
+    ax.set_title("parameter importance", fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+    return path
+
+
+def _fmt(x: float | None, digits: int = 3) -> str:
+    if x is None or not np.isfinite(x):
+        return "-"
+    return f"{x:.{digits}f}"
+
+
+def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list[str]:
+    lines = ["| scenario | Table 1 (rig) E_p / E_rms | paper gains E_p / E_rms | tuned E_p / E_rms "
+             "| switches/s paper / tuned | status paper / tuned |",
+             "|---|---|---|---|---|---|"]
+    tuned = comp.table("tuned", draw)
+    paper = comp.table("paper", draw)
+    for sc in objective.scenarios:
+        t, p = tuned[sc.name], paper[sc.name]
+        rig = f"{sc.paper[0]:.2f} / {sc.paper[1]:.2f}" if sc.paper else "-"
+        lines.append(f"| {sc.name} | {rig} | {_fmt(p['E_p_mm'])} / {_fmt(p['E_rms_mm'])} "
+                     f"| {_fmt(t['E_p_mm'])} / {_fmt(t['E_rms_mm'])} "
+                     f"| {_fmt(p['switches_per_s'], 1)} / {_fmt(t['switches_per_s'], 1)} "
+                     f"| {p['status']} / {t['status']} |")
+    return lines
+
+
+def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
+           tuned: ControllerConfig, paper: ControllerConfig, comp: Comparison,
+           imp: dict[str, float] | None, info: dict[str, Any]) -> str:
+    """The text of report.md."""
+    st = objective.settings
+    counts = info["counts"]
+    first = study.get_trials(deepcopy=False)[:1]
+    paper_trial = (first[0].value if first and first[0].state == TrialState.COMPLETE
+                   else None)
+    draws = objective.draws
+    wd = draws[comp.worst_draw]
+    out = [
+        "# tune report",
+        "",
+        f"- model: `{info['model']}` (sha256 `{info['model_sha256']}`)",
+        f"- study: `{study.study_name}` in `{info['storage']}`; seed {objective.seed}",
+        f"- trials: {counts['COMPLETE']} complete, {counts['PRUNED']} pruned, "
+        f"{counts['FAIL']} failed (wanted {info['n_trials']} complete + pruned)",
+        f"- best trial: #{best.number}, objective {best.value:.4f}; "
+        f"`{info['paper_path']}` on the same plants: {_fmt(comp.paper.value, 4)}"
+        + (f"; trial #0 (the paper's gains with the model's θ box): {paper_trial:.4f}"
+           if paper_trial is not None else ""),
+        f"- objective: mean over {len(objective.scenarios)} scenarios of the CVaR "
+        f"(α = {st.cvar_alpha}) over {len(draws)} plant draws of "
+        "½(E_p/E_p\\* + E_rms/E_rms\\*) + penalties (chattering above "
+        f"{st.switches_free:g} switches/s, pressure outside [{st.p_low_fraction:g} p0, p_max], "
+        "end-stop contact); 1 = the paper's Table 1 on every scenario. docs/tuning.md.",
+        f"- controller: `{info['controller']}`; baseline: `{info['paper_path']}`",
+        "",
+        "## Table 1 on the nominal plant",
+        "",
+        "Simulated on the model's nominal plant (draw 0, sensor-noise seed "
+        f"{draws[0].noise_seed}); reproduce with "
+        f"`simulate --controller {info['controller']} --plant {info['plant_nominal']} "
+        "--scenario all`.",
+        "",
+        *_side_by_side(comp, objective, 0),
+        "",
+        "```",
+        format_table([(s.name, comp.table("tuned", 0)[s.name], s.paper)
+                      for s in objective.scenarios], "tuned, nominal plant"),
+        "",
+        format_table([(s.name, comp.table("paper", 0)[s.name], s.paper)
+                      for s in objective.scenarios], "paper gains, nominal plant"),
+        "```",
+        "",
+        f"## Table 1 on the worst draw (#{wd.index}, {wd.label})",
+        "",
+        "The draw where the tuned controller's mean cost over the scenarios is highest; "
+        f"plant in `{info['plant_worst']}`.",
+        "",
+        *_side_by_side(comp, objective, comp.worst_draw),
+        "",
+        "| draw | " + " | ".join(f"{k}" for k in wd.values) + " |",
+        "|---|" + "---|" * len(wd.values),
+        f"| #{wd.index} {wd.label} | " + " | ".join(f"{v:.4g}" for v in wd.values.values())
+        + " |",
+        "",
+        "## Robustness: cost per scenario over the draws",
+        "",
+        "| scenario | tuned CVaR | tuned worst | paper CVaR | paper worst |",
+        "|---|---|---|---|---|",
+    ]
+    for sc in objective.scenarios:
+        out.append(f"| {sc.name} | {_fmt(comp.tuned.scenario_cvar.get(sc.name))} "
+                   f"| {_fmt(comp.tuned.scenario_worst.get(sc.name))} "
+                   f"| {_fmt(comp.paper.scenario_cvar.get(sc.name))} "
+                   f"| {_fmt(comp.paper.scenario_worst.get(sc.name))} |")
+    if comp.paper.failure:
+        out += ["", f"The paper's gains fail a run: {comp.paper.failure}."]
+    if comp.tuned.failure:
+        out += ["", f"The tuned gains fail a run: {comp.tuned.failure}."]
+    tp = params_from_controller(tuned)
+    pp = params_from_controller(paper)
+    out += ["", "## Parameters", "",
+            "| parameter | unit | range | paper | tuned | importance |",
+            "|---|---|---|---|---|---|"]
+    for p in objective.space.params:
+        imp_s = f"{imp[p.name]:.3f}" if imp and p.name in imp else "-"
+        out.append(f"| {p.name} | {p.unit} | [{p.low:.3g}, {p.high:.3g}]{' log' if p.log else ''}"
+                   f" | {pp[p.name]:.4g} | {tp[p.name]:.4g} | {imp_s} |")
+    out += ["",
+            f"Fixed: eps2 = {tuned.gains.eps2:g}, eps3 = {tuned.gains.eps3:g}, "
+            f"r2 = {tuned.gains.r2:g}, motion R = {tuned.kalman.motion.R:.3g} m², "
+            f"force R = {tuned.kalman.force.R:.3g} N², rate_max = "
+            f"{list(tuned.adaptation.rate_max)}, θ box and θ_0 from the model.",
+            "",
+            "## Plots",
+            "",
+            f"![optimisation history]({info['history_png']})",
+            "",
+            f"![parameter importance]({info['importance_png']})",
+            ""]
+    return "\n".join(out)
+
+
+def write_report(out_dir: str | os.PathLike[str], objective: TuneObjective,
+                 study: optuna.Study, best: FrozenTrial, tuned: ControllerConfig,
+                 paper: ControllerConfig, comp: Comparison, info: dict[str, Any]) -> Path:
+    """Write ``report.md``, ``history.png`` and ``importance.png`` into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : path-like
+    objective : TuneObjective
+    study : optuna.Study
+    best : FrozenTrial
+    tuned, paper : ControllerConfig
+    comp : Comparison
+        From :func:`compare`.
+    info : dict
+        ``model``, ``model_sha256``, ``storage``, ``n_trials``, ``counts``, ``controller``,
+        ``paper_path``, ``plant_nominal``, ``plant_worst`` (strings for the text).
+
+    Returns
+    -------
+    Path
+        The report.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    plot_history(study, out / "history.png")
+    imp = importances(study)
+    plot_importance(imp, out / "importance.png")
+    text = render(objective, study, best, tuned, paper, comp, imp,
+                  {**info, "history_png": "history.png", "importance_png": "importance.png"})
+    path = out / "report.md"
+    atomic_write_text(path, text)
+    return path
+
+
+__all__ = ["PAPER_CONTROLLER", "Comparison", "compare", "importances", "plot_history",
+           "plot_importance", "render", "write_report"]

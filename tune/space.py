@@ -1,0 +1,278 @@
+"""The search space of ``tune`` and the map from a trial's parameters to a controller.yaml.
+
+What is searched (14 parameters, named by their controller.yaml key path; docs/tuning.md):
+
+* ``gains.k1``, ``gains.k2``, ``gains.k3`` -- the backstepping gains of Eqs. (13), (17), (26).
+* ``gains.h2``, ``gains.h3`` with ``eps2``/``eps3`` fixed at the paper's 0.05 and 250 (Sec. 5.1).
+  With constant h (DESIGN.md) the robust terms of Eqs. (20) and (29) are
+  ``-h2² e2 / (4 ε2)`` and ``-h3² e3 / (4 ε3)``: h and ε enter the law only through h²/ε
+  (``control/darc.py``), so searching both would add a dimension with no effect. We search h and
+  keep ε, the boundary-layer size of Eqs. (19)/(28), at the paper's value so that the guaranteed
+  bound ε = r2 ε2 + r3 ε3 of Eq. (30) keeps its meaning. (κ2 = k2 + h2²/(4ε2) is the total e2
+  gain; k2 and h2 are therefore partly redundant, which the multivariate TPE sampler handles --
+  see docs/tuning.md.)
+* ``gains.r3`` with ``r2`` = 1 fixed: r2 and r3 enter the law through the ratio r2/r3 in
+  ``Q_Lda`` (Eq. 26) and as factors of τ (Eq. 26), which Γ absorbs; only the ratio matters.
+* ``adaptation.gamma.<θ_i>`` -- the six diagonal entries of Γ (Eq. 9).
+* ``kalman.motion.Q`` and ``kalman.force.Q`` -- the process-noise variances of the two filters
+  of Sec. 4. Their R are fixed: a Kalman filter's gains depend only on Q/R (the initial
+  covariance is proportional to R too), so searching R as well would be a redundant dimension.
+  The motion filter's R is the position-sensor variance of the model (``sensors.x_noise²``, the
+  paper's 1e-10 m² when the model has none); the force filter's R is the paper's 1e-4 N².
+
+Every range spans one to three decades around the paper's value and is sampled on a log scale.
+Not searched: θ_min, θ_max, θ_0 (from model.yaml), the rate limits θ̇_M and ``min_ref_speed``
+(the paper's Sec. 5.1/5.3 values), ``position_feedback`` (``measured``, docs/controller.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import optuna
+
+from pneutune.control.constants import CONTROLLER_SCHEMA, THETA_NAMES
+from pneutune.control.controller_config import ControllerConfig
+from pneutune.control.model_config import ModelConfig
+from pneutune.control.yamlio import validate_model
+
+#: The paper's Sec. 5.1 values that ``tune`` keeps fixed.
+PAPER_EPS2: float = 0.05
+PAPER_EPS3: float = 250.0
+PAPER_R2: float = 1.0
+PAPER_RATE_MAX: tuple[float, ...] = (50.0, 500.0, 2000.0, 100.0, 50.0, 50.0)
+PAPER_MIN_REF_SPEED: float = 0.001
+#: The paper's motion-filter R read in millimetres (docs/controller.md) [m^2].
+PAPER_MOTION_R: float = 1.0e-10
+#: The paper's force-filter R [N^2].
+PAPER_FORCE_R: float = 1.0e-4
+#: The paper's Q/R of both filters (3100 / 1e-4) [1/s^4].
+PAPER_Q_OVER_R: float = 3.1e7
+#: Headroom of the supervisor's pressure limit over the supply [Pa].
+P_MAX_MARGIN: float = 0.5e5
+#: Longest sensor silence the runtime tolerates (5 samples of 4 ms) [s].
+SENSOR_TIMEOUT_S: float = 0.02
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One searched parameter.
+
+    Attributes
+    ----------
+    name : str
+        Optuna parameter name: the controller.yaml key path (``gains.k1``,
+        ``adaptation.gamma.M``, ``kalman.motion.Q``).
+    low, high : float
+        Range, in the parameter's SI unit.
+    log : bool
+        Sample on a log scale.
+    unit : str
+        SI unit, for reports.
+    paper : float
+        The paper's Sec. 5.1 value in the same unit (the first, enqueued trial).
+    """
+
+    name: str
+    low: float
+    high: float
+    log: bool
+    unit: str
+    paper: float
+
+    def distribution(self) -> optuna.distributions.FloatDistribution:
+        """The Optuna distribution of this parameter."""
+        return optuna.distributions.FloatDistribution(self.low, self.high, log=self.log)
+
+    def clip(self, value: float) -> float:
+        """``value`` clipped into [low, high]."""
+        return min(self.high, max(self.low, value))
+
+
+_GAMMA_UNITS = ("kg^2/(s N m/s)", "N^2/(s N)", "(N s/m)^2/(s N m/s)", "N^2/(s N)",
+                "(Pa/s)^2/(s N m^2/s)", "(Pa/s)^2/(s N m^2/s)")
+
+
+def motion_R(model: ModelConfig) -> float:
+    """Fixed R of the motion filter: the model's position-noise variance [m^2].
+
+    ``sensors.x_noise²`` of model.yaml, or the paper's 1e-10 m² when the model has no (or zero)
+    position noise.
+    """
+    if model.sensors is not None and model.sensors.x_noise > 0.0:
+        return float(model.sensors.x_noise) ** 2
+    return PAPER_MOTION_R
+
+
+@dataclass(frozen=True)
+class SearchSpace:
+    """The parameters searched for one model (the Kalman Q ranges scale with the model's R).
+
+    Attributes
+    ----------
+    params : tuple of ParamSpec
+        In a fixed order (the order Optuna suggests them).
+    R_motion, R_force : float
+        The fixed R of the motion [m^2] and force [N^2] filters.
+    """
+
+    params: tuple[ParamSpec, ...]
+    R_motion: float
+    R_force: float
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Parameter names, in order."""
+        return tuple(p.name for p in self.params)
+
+    def distributions(self) -> dict[str, optuna.distributions.FloatDistribution]:
+        """Name -> Optuna distribution."""
+        return {p.name: p.distribution() for p in self.params}
+
+    def suggest(self, trial: optuna.Trial) -> dict[str, float]:
+        """Ask ``trial`` for every parameter (in order)."""
+        return {p.name: trial.suggest_float(p.name, p.low, p.high, log=p.log)
+                for p in self.params}
+
+    def paper_params(self) -> dict[str, float]:
+        """The paper's values, clipped into the ranges (enqueued as the first trial)."""
+        return {p.name: p.clip(p.paper) for p in self.params}
+
+    def signature(self) -> list[list[Any]]:
+        """Plain data identifying the space (stored with a study, checked on resume)."""
+        return [[p.name, p.low, p.high, p.log] for p in self.params]
+
+
+def search_space(model: ModelConfig) -> SearchSpace:
+    """The search space for ``model``.
+
+    Parameters
+    ----------
+    model : ModelConfig
+        The identified model (its sensor noise sets the motion filter's R and Q range).
+
+    Returns
+    -------
+    SearchSpace
+    """
+    r_m = motion_R(model)
+    r_f = PAPER_FORCE_R
+    gamma_paper = (0.2, 300.0, 2000.0, 500.0, 100.0, 100.0)
+    gamma_range = ((0.005, 20.0), (3.0, 3.0e4), (20.0, 2.0e5), (5.0, 5.0e4), (1.0, 1.0e4),
+                   (1.0, 1.0e4))
+    params = [
+        ParamSpec("gains.k1", 10.0, 400.0, True, "1/s", 65.0),
+        ParamSpec("gains.k2", 300.0, 1.0e5, True, "N s/m", 6700.0),
+        ParamSpec("gains.k3", 2.0, 1000.0, True, "1/s", 50.0),
+        ParamSpec("gains.h2", 0.5, 100.0, True, "N", 10.0),
+        ParamSpec("gains.h3", 5.0, 2000.0, True, "N/s", 100.0),
+        ParamSpec("gains.r3", 0.01, 10.0, True, "-", 0.1),
+    ]
+    for name, (lo, hi), paper, unit in zip(THETA_NAMES, gamma_range, gamma_paper, _GAMMA_UNITS,
+                                           strict=True):
+        params.append(ParamSpec(f"adaptation.gamma.{name}", lo, hi, True, unit, paper))
+    # Q/R of the motion filter over 1e5..1e11 1/s^4: bandwidth ~ (Q/R)^(1/6), a factor 10.
+    params.append(ParamSpec("kalman.motion.Q", 1.0e5 * r_m, 1.0e11 * r_m, True, "m^2/s^4",
+                            PAPER_Q_OVER_R * r_m))
+    # Q/R of the force filter over 1e4..1e10 1/s^4: bandwidth ~ (Q/R)^(1/4), 10..316 rad/s.
+    params.append(ParamSpec("kalman.force.Q", 1.0e4 * r_f, 1.0e10 * r_f, True, "N^2/s^4",
+                            PAPER_Q_OVER_R * r_f))
+    return SearchSpace(tuple(params), r_m, r_f)
+
+
+def _inside(lo: float, value: float, hi: float) -> float:
+    """``value`` moved strictly inside (lo, hi) if it sits on a bound (θ_0 must be interior)."""
+    pad = 1e-6 * (hi - lo)
+    return min(hi - pad, max(lo + pad, value))
+
+
+def controller_dict(model: ModelConfig, params: Mapping[str, float],
+                    provenance: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The controller.yaml data for ``params`` on ``model`` (not yet validated).
+
+    The rig, the valves' C and b (for the fully-open flows of Eq. 32), the PWM curve and the θ box
+    come from the model; θ_0 is the model's nominal θ (moved inside the box by 1e-6 of its span if
+    it sits on a bound); limits are the stroke and the supply + 0.5 bar.
+
+    Parameters
+    ----------
+    model : ModelConfig
+        The identified model.
+    params : mapping
+        A value for every name of :func:`search_space`.
+    provenance : mapping, optional
+        The ``provenance`` block.
+
+    Returns
+    -------
+    dict
+    """
+    space = search_space(model)
+    missing = [n for n in space.names if n not in params]
+    if missing:
+        raise KeyError(f"parameters missing: {missing}")
+    th = model.theta
+    theta_0 = [_inside(lo, v, hi) for lo, v, hi in zip(th.min, th.nominal, th.max, strict=True)]
+    rig = model.rig
+    data: dict[str, Any] = {
+        "schema": CONTROLLER_SCHEMA,
+        "variant": "modified_darc",
+        "position_feedback": "measured",
+        "rig": rig.model_dump(),
+        "valves": {name: {"C": v.C, "b": v.b}
+                   for name, v in zip(("a_in", "a_out", "b_in", "b_out"),
+                                      model.valves.ordered(), strict=True)},
+        "pwm": {"duty": list(model.pwm.duty), "ratio": list(model.pwm.ratio)},
+        "gains": {"k1": params["gains.k1"], "k2": params["gains.k2"], "k3": params["gains.k3"],
+                  "r2": PAPER_R2, "r3": params["gains.r3"], "eps2": PAPER_EPS2,
+                  "eps3": PAPER_EPS3, "h2": params["gains.h2"], "h3": params["gains.h3"]},
+        "adaptation": {
+            "gamma": [params[f"adaptation.gamma.{n}"] for n in THETA_NAMES],
+            "rate_max": list(PAPER_RATE_MAX),
+            "theta_min": list(th.min), "theta_max": list(th.max), "theta_0": theta_0,
+            "min_ref_speed": PAPER_MIN_REF_SPEED,
+        },
+        "kalman": {"motion": {"Q": params["kalman.motion.Q"], "R": space.R_motion},
+                   "force": {"Q": params["kalman.force.Q"], "R": space.R_force}},
+        "limits": {"x_min": rig.x_min, "x_max": rig.x_max, "p_max": rig.p_s + P_MAX_MARGIN,
+                   "sensor_timeout_s": SENSOR_TIMEOUT_S},
+    }
+    if provenance is not None:
+        data["provenance"] = dict(provenance)
+    return data
+
+
+def controller_from_params(model: ModelConfig, params: Mapping[str, float],
+                           provenance: Mapping[str, Any] | None = None) -> ControllerConfig:
+    """A validated :class:`ControllerConfig` for ``params`` on ``model`` (see
+    :func:`controller_dict`).
+
+    Raises
+    ------
+    ConfigError
+        A value outside contract 4's ranges (e.g. a model whose θ box is degenerate).
+    """
+    clean = {k: float(v) for k, v in params.items()}
+    if not all(math.isfinite(v) for v in clean.values()):
+        raise ValueError(f"parameters must be finite, got {clean}")
+    return validate_model(ControllerConfig, controller_dict(model, clean, provenance),
+                          "<tune>")
+
+
+def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
+    """The searched parameters of a controller (inverse of :func:`controller_from_params`)."""
+    g = cfg.gains
+    out = {"gains.k1": g.k1, "gains.k2": g.k2, "gains.k3": g.k3, "gains.h2": g.h2,
+           "gains.h3": g.h3, "gains.r3": g.r3}
+    for name, value in zip(THETA_NAMES, cfg.adaptation.gamma, strict=True):
+        out[f"adaptation.gamma.{name}"] = value
+    out["kalman.motion.Q"] = cfg.kalman.motion.Q
+    out["kalman.force.Q"] = cfg.kalman.force.Q
+    return out
+
+
+__all__ = ["ParamSpec", "SearchSpace", "controller_dict", "controller_from_params", "motion_R",
+           "params_from_controller", "search_space"]
