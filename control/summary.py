@@ -55,7 +55,11 @@ def _figure_links(scenario: str, figures: Mapping[str, Sequence[str | os.PathLik
     if isinstance(figures, Mapping):
         files = [Path(f) for f in figures.get(scenario, ())]
     else:
-        files = sorted(Path(figures).glob(f"{scenario}-*.png"))
+        # exact: "<scenario>-<figure>.png" where <figure> is not itself "<suffix>-<figure>" of a
+        # longer scenario name (sine-0.5hz must not pick up sine-0.5hz-heavy-*.png)
+        longer = [s for s in SCENARIOS if s != scenario and s.startswith(scenario + "-")]
+        files = sorted(f for f in Path(figures).glob(f"{scenario}-*.png")
+                       if not any(f.stem.startswith(s + "-") for s in longer))
     links = []
     for f in files:
         label = f.stem[len(scenario) + 1:] if f.stem.startswith(scenario + "-") else f.stem
