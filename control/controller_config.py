@@ -18,7 +18,6 @@ after editing the layout.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -312,21 +311,21 @@ SCHEMA_PATH: Path = Path(__file__).resolve().parent / "schemas" / "controller.sc
 
 
 def controller_json_schema() -> dict[str, Any]:
-    """The JSON Schema of controller.yaml (validation mode, by alias)."""
-    schema = ControllerConfig.model_json_schema(by_alias=True, mode="validation")
-    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
-    schema["$id"] = "https://pneutune.invalid/schemas/controller.schema.json"
-    schema["title"] = "pneutune.controller/1"
-    return schema
+    """The JSON Schema of controller.yaml (:func:`pneutune.control.json_schemas.json_schema`)."""
+    from .json_schemas import json_schema
+
+    return json_schema("controller")
 
 
 def schema_text() -> str:
     """The schema as the committed file's text."""
-    return json.dumps(controller_json_schema(), indent=2, sort_keys=True, ensure_ascii=False) + "\n"
+    from .json_schemas import schema_text as text
+
+    return text("controller")
 
 
 def write_schema(path: str | os.PathLike[str] | None = None) -> Path:
-    """Regenerate the committed schema file (``python -m pneutune.control.controller_config``)."""
+    """Regenerate the committed schema file (``python -m pneutune.control.json_schemas``)."""
     from .atomic import atomic_write_text
 
     target = Path(path) if path is not None else SCHEMA_PATH
