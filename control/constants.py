@@ -23,6 +23,8 @@ PWM_UPDATE_MODES: tuple[str, str] = ("immediate", "latched")
 
 #: The paper's θ = [M, F_n, b_v, A_f, D_an, D_bn] (Sec. 2.3); this order is kept everywhere.
 THETA_NAMES: tuple[str, ...] = ("M", "F_n", "b_v", "A_f", "D_an", "D_bn")
+#: Units of θ's components, in the same order.
+THETA_UNITS: tuple[str, ...] = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
 
 #: Schema identifiers of the file contracts.
 LOG_SCHEMA = "pneutune.log/1"

@@ -12,12 +12,11 @@ import matplotlib.pyplot as plt
 
 from .atomic import atomic_open
 from .closed_loop import ClosedLoopResult
-from .constants import THETA_NAMES, VALVES
-
-_THETA_UNITS = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
+from .constants import THETA_NAMES, THETA_UNITS, VALVES
 
 
-def _save(fig: plt.Figure, path: Path) -> None:
+def save_figure(fig: plt.Figure, path: Path) -> None:
+    """Write a figure as PNG atomically (temporary file, then rename) and close it."""
     with atomic_open(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=110)
     plt.close(fig)
@@ -55,7 +54,7 @@ def plot_closed_loop(result: ClosedLoopResult, folder: str | os.PathLike[str]) -
     fig.suptitle(f"{name}: tracking ({result.controller.variant})")
     fig.tight_layout()
     files.append(out / f"{name}-tracking.png")
-    _save(fig, files[-1])
+    save_figure(fig, files[-1])
 
     fig, ax = plt.subplots(figsize=(8, 3.5))
     ax.plot(t, result.sensors[:, 1] / 1e5, label="$p_a$")
@@ -67,7 +66,7 @@ def plot_closed_loop(result: ClosedLoopResult, folder: str | os.PathLike[str]) -
     ax.set_title(f"{name}: chamber pressures")
     fig.tight_layout()
     files.append(out / f"{name}-pressures.png")
-    _save(fig, files[-1])
+    save_figure(fig, files[-1])
 
     fig, axes = plt.subplots(3, 2, figsize=(9, 6.5), sharex=True)
     theta = result.control_state[:, -6:]
@@ -76,13 +75,13 @@ def plot_closed_loop(result: ClosedLoopResult, folder: str | os.PathLike[str]) -
         ax.plot(t, theta[:, i], "C2")
         ax.axhline(a.theta_min[i], color="0.5", ls=":", lw=0.8)
         ax.axhline(a.theta_max[i], color="0.5", ls=":", lw=0.8)
-        ax.set_ylabel(f"{THETA_NAMES[i]} [{_THETA_UNITS[i]}]", fontsize=8)
+        ax.set_ylabel(f"{THETA_NAMES[i]} [{THETA_UNITS[i]}]", fontsize=8)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
     fig.suptitle(f"{name}: parameter estimates θ̂ (dotted: bounds)")
     fig.tight_layout()
     files.append(out / f"{name}-theta.png")
-    _save(fig, files[-1])
+    save_figure(fig, files[-1])
 
     fig, axes = plt.subplots(4, 1, figsize=(8, 6), sharex=True)
     for i, ax in enumerate(axes):
@@ -93,8 +92,8 @@ def plot_closed_loop(result: ClosedLoopResult, folder: str | os.PathLike[str]) -
     fig.suptitle(f"{name}: commanded duties ({m.switches_per_s:.1f} mode switches/s)")
     fig.tight_layout()
     files.append(out / f"{name}-duties.png")
-    _save(fig, files[-1])
+    save_figure(fig, files[-1])
     return files
 
 
-__all__ = ["plot_closed_loop"]
+__all__ = ["plot_closed_loop", "save_figure"]

@@ -77,7 +77,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .constants import THETA_NAMES
+from .constants import THETA_NAMES, THETA_UNITS
 from .controller_config import ControllerConfig
 from .errors import PneutuneError
 
@@ -94,7 +94,6 @@ FAIL_SAFE_MODES: dict[str, tuple[float, float, float, float]] = {
 CHANNELS: tuple[str, str, str, str] = ("x", "p_a", "p_b", "p_s")
 #: θ̂ indices watched for drift onto a bound: M, b_v, A_f (θ1, θ3, θ4 of the paper).
 WATCHED_THETA: tuple[int, ...] = (0, 2, 3)
-_THETA_UNITS = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
 #: Times are k Ts in floating point: "more than the timeout" means by more than 1 ns.
 _TIME_EPS = 1.0e-9
 
@@ -413,10 +412,10 @@ class Supervisor:
                     self._warned.add(tag)
                     name = THETA_NAMES[i]
                     out.append(Event(t, "warning", "reidentify_theta",
-                                     f"θ̂ {name} = {th:.6g} {_THETA_UNITS[i]} has stayed within "
+                                     f"θ̂ {name} = {th:.6g} {THETA_UNITS[i]} has stayed within "
                                      f"{s.theta_band * 100:g} % of its "
                                      f"{'lower' if side == 0 else 'upper'} bound {bound:g} "
-                                     f"{_THETA_UNITS[i]} for {held:.2f} s: the model's range no "
+                                     f"{THETA_UNITS[i]} for {held:.2f} s: the model's range no "
                                      f"longer holds the plant; run identify again"))
         return out
 

@@ -11,19 +11,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pneutune.control.atomic import atomic_open, atomic_write_text
-from pneutune.control.constants import THETA_NAMES, VALVES
+from pneutune.control.atomic import atomic_write_text
+from pneutune.control.constants import THETA_NAMES, THETA_UNITS, VALVES
+from pneutune.control.plots import save_figure
 
 from .motion import smooth_sign, stribeck
 from .pipeline import IdentifyResult
-
-_UNITS = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
-
-
-def _save(fig: plt.Figure, path: Path) -> None:
-    with atomic_open(path, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=110)
-    plt.close(fig)
 
 
 def _plot_valves(r: IdentifyResult, out: Path) -> Path:
@@ -45,7 +38,7 @@ def _plot_valves(r: IdentifyResult, out: Path) -> Path:
     fig.suptitle("Valve fit: pressure increments, Eqs. (5)-(7)")
     fig.tight_layout()
     path = out / "valves.png"
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -64,7 +57,7 @@ def _plot_pwm(r: IdentifyResult, out: Path) -> Path:
     ax.legend(fontsize=8)
     fig.tight_layout()
     path = out / "pwm.png"
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -89,7 +82,7 @@ def _plot_friction(r: IdentifyResult, out: Path) -> Path:
     ax.legend(fontsize=8)
     fig.tight_layout()
     path = out / "friction.png"
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -109,7 +102,7 @@ def _plot_validation(r: IdentifyResult, out: Path) -> Path:
     fig.suptitle("Validation: the identified model driven by the logged duties")
     fig.tight_layout()
     path = out / "validation.png"
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -125,7 +118,7 @@ def summary_rows(r: IdentifyResult) -> list[tuple[str, str, str]]:
              ("b_v", f"{f.b_v:.1f} N s/m", ""), ("v_s", f"{f.v_s * 1e3:.2f} mm/s", ""),
              ("alpha", f"{f.alpha:.2f}", "")]
     for i, name in enumerate(THETA_NAMES):
-        rows.append((f"θ{i + 1} {name}", f"{m.theta.nominal[i]:.4g} {_UNITS[i]}",
+        rows.append((f"θ{i + 1} {name}", f"{m.theta.nominal[i]:.4g} {THETA_UNITS[i]}",
                      f"[{m.theta.min[i]:.4g}, {m.theta.max[i]:.4g}]"))
     rows += [("F_max", f"{m.uncertainty.F_max:.3g} N", ""),
              ("D_a_max / D_b_max", f"{m.uncertainty.D_a_max:.3g} / {m.uncertainty.D_b_max:.3g}"
@@ -163,8 +156,8 @@ def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
         "| θ | nominal | min | max | width | basis |", "|---|---:|---:|---:|---:|---|",
     ]
     for i, name in enumerate(THETA_NAMES):
-        lines.append(f"| θ{i + 1} {name} [{_UNITS[i]}] | {th.nominal[i]:.5g} | {th.lo[i]:.5g} | "
-                     f"{th.hi[i]:.5g} | {th.widths[i]:.4g} | {th.basis[i]} |")
+        lines.append(f"| θ{i + 1} {name} [{THETA_UNITS[i]}] | {th.nominal[i]:.5g} | "
+                     f"{th.lo[i]:.5g} | {th.hi[i]:.5g} | {th.widths[i]:.4g} | {th.basis[i]} |")
     lines += ["", f"F_max = {m.uncertainty.F_max:.3g} N (99.9th percentile of the friction "
               f"fit's residual force), D_a_max = {m.uncertainty.D_a_max:.3g} Pa/s, "
               f"D_b_max = {m.uncertainty.D_b_max:.3g} Pa/s (largest valve-fit window residual "

@@ -24,8 +24,9 @@ import numpy as np
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
-from pneutune.control.atomic import atomic_open, atomic_write_text
+from pneutune.control.atomic import atomic_write_text
 from pneutune.control.controller_config import ControllerConfig
+from pneutune.control.plots import save_figure
 from pneutune.control.simulate_cli import format_table
 
 from .objective import FAIL_VALUE, Evaluation, TuneObjective
@@ -76,12 +77,6 @@ def compare(objective: TuneObjective, tuned: ControllerConfig,
     return Comparison(ev_t, ev_p, worst)
 
 
-def _save(fig: plt.Figure, path: Path) -> None:
-    with atomic_open(path, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=110)
-    plt.close(fig)
-
-
 def plot_history(study: optuna.Study, path: Path) -> Path:
     """Objective of each trial and the best so far (PNG)."""
     trials = study.get_trials(deepcopy=False)
@@ -108,7 +103,7 @@ def plot_history(study: optuna.Study, path: Path) -> Path:
                  f"{n_fail} unstable/aborted)", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -135,7 +130,7 @@ def plot_importance(imp: dict[str, float] | None, path: Path) -> Path:
         ax.text(0.5, 0.5, "not enough complete trials", ha="center", va="center")
     ax.set_title("parameter importance", fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
