@@ -11,7 +11,7 @@ balance (:func:`pneutune.control.rig.rest_pressures`), runs and computes :class:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -153,7 +153,6 @@ class ClosedLoopResult:
     control_state: np.ndarray
     truth: np.ndarray | None
     metrics: Metrics
-    n_done: int = field(default=0)
 
     @property
     def t(self) -> np.ndarray:
@@ -283,4 +282,4 @@ def simulate_scenario(controller: ControllerConfig, scenario: Scenario,
     seed_used = pcfg.sim.seed if seed is None else seed
     return ClosedLoopResult(scenario, pcfg, controller, seed_used, Ts, ref, sensors[:done],
                             duties[:done], cstate[:done], truth[:done] if record_truth else None,
-                            metrics, done)
+                            metrics)
