@@ -427,7 +427,7 @@ class DeployResult:
         plant = self.plant if self.plant is not None else PlantConfig()
         return ClosedLoopResult(self.scenario, plant, self.controller, self.seed or 0, rec.Ts,
                                 rec.reference_, rec.sensors_, rec.duties_, rec.state_,
-                                rec.truth_, self.metrics, rec.n)
+                                rec.truth_, self.metrics)
 
 
 def scenario_reference(scenario: Scenario, rig_meta: Mapping[str, float | str]) -> np.ndarray:

@@ -211,3 +211,18 @@ def test_summary_markdown(tmp_path):
            "[tracking](figures/sine-0.5hz-tracking.png) |" in text
     assert "| disturbance-0.5hz | – | 0.39 / 0.14 (fault) | – |" in text
     assert summary_markdown(paper).count("\n| ") == 3  # header + 2 rows
+
+
+def test_deploy_plots_write_the_figures(tmp_path):
+    """`deploy --plots DIR` (used by make demo) draws the paper-like figures of each run."""
+    import subprocess
+    import sys
+
+    paper = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
+    res = subprocess.run([sys.executable, "-m", "pneutune.control.deploy_cli", str(paper),
+                          "--scenario", "sine-0.75hz", "--duration", "3", "--log",
+                          str(tmp_path / "d.mcap"), "--plots", str(tmp_path / "figs")],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == sorted(
+        f"sine-0.75hz-{k}.png" for k in ("tracking", "pressures", "theta", "duties"))
