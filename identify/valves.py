@@ -398,7 +398,7 @@ class ValveIdentifier(Identifier):
         self.theta_ = theta
         self.C_ = theta[0:8:2] * _C_UNIT
         self.b_ = theta[1:8:2]
-        self.leak_C_ = float(theta[8] * _LEAK_UNIT)
+        self.leak_C_ = max(float(theta[8] * _LEAK_UNIT), 0.0)  # bound slack can leave -1e-17
         self.D_ = np.array([theta[9], theta[10]]) * _D_UNIT
         self.D_std_ = np.array(D_sd, dtype=float)
         self.leak_std_ = leak_sd
