@@ -14,7 +14,7 @@ Identify the servo-pneumatic axis behind a run log (MCAP, contract pneutune.log/
 conductances C and critical ratios b (ISO 6358), the PWM duty curve (a monotone QP), Stribeck
 friction, the smooth friction model, the moving mass, the constant disturbance terms, and the
 bounds θ_min..θ_max of the DARC's θ = [M, F_n, b_v, A_f, D_an, D_bn]. The model is then
-simulated on the held-out end of the log and its NRMSE reported.
+simulated on the held-out part of the log (the end of every 10 s) and its NRMSE reported.
 
 Works on the identification run (simulate --experiment identification, or the same protocol
 on a rig) and on ordinary closed-loop logs: it uses only /rig/sensors, /rig/valves and the rig
@@ -50,7 +50,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mass-tol", type=float, default=0.05, metavar="REL",
                         help="relative tolerance of --mass (default 0.05)")
     parser.add_argument("--holdout", type=float, default=0.2, metavar="FRAC",
-                        help="fraction at the end of the log kept for validation (default 0.2)")
+                        help="fraction of every 10 s of the log kept for validation (default 0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the bootstraps")
     args = parser.parse_args(argv)
     if args.mass is not None and not 0.0 < args.mass <= 1000.0:

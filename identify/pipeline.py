@@ -8,7 +8,8 @@
 4. :func:`~pneutune.identify.bounds.theta_bounds`: θ nominal and bounds.
 5. :func:`~pneutune.identify.validation.validate`: the model simulated on the held-out part.
 
-Everything is fitted on the first ``1 - holdout`` of the log; the rest is for validation.
+Everything is fitted on the first ``1 - holdout`` of every 10 s of the log; the rest of each
+10 s is for validation (:meth:`~pneutune.identify.dataset.Dataset.split`).
 """
 
 from __future__ import annotations

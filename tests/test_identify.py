@@ -30,7 +30,7 @@ def _valves(C_scale, b, d_on, d_off, min_pulse):
             for name, c, bb in zip(VALVE_NAMES, C_scale, b, strict=True)}
 
 
-#: Three plants that between them vary friction ±40 %, C ±25 % per valve, b, the delays, mass
+#: Four plants that between them vary friction ±40 %, C ±25 % per valve, b, the delays, mass
 #: and payload, a small seal leak, the constant disturbance terms and the sensor noise.
 VARIANTS = {
     "stiff-friction-heavy": {
@@ -44,6 +44,12 @@ VARIANTS = {
                           1.0e-3),
         "mass": 0.8, "leak": {"C": 1.0e-11},
         "sensors": {"x_noise": 1.0e-5, "p_noise": 600.0},
+    },
+    # friction -40 % on both Coulomb and viscous terms and a heavier piston: slow ramps
+    # stick-slip. Fitted jointly with the Stribeck terms, F_C came out 15-17 % low here.
+    "low-damping-light-coulomb": {
+        "friction": {"F_S": 45.0, "F_C": 30.0, "b_v": 2100.0},
+        "mass": 1.5,
     },
     "disturbed-latched": {
         "rig": {"pwm_update": "latched"},
