@@ -100,7 +100,21 @@ class Dataset:
         Interleaved, so that both parts see every kind of motion of the log: holding out the
         end of an identification run took its fastest ramps away from the friction fit, and
         F_C then came out 11 % low on one noise seed of the default plant (3 % interleaved).
+        A log shorter than ``block`` holds out its last ``holdout`` fraction.
+
+        Parameters
+        ----------
+        holdout : float
+            Fraction held out, 0 < holdout < 1.
+        block : float
+            Period of the interleave [s].
+
+        Returns
+        -------
+        (ndarray of bool, ndarray of bool)
+            The fit and the held-out masks, complementary.
         """
+        block = min(block, self.duration)
         phase = np.mod(self.t - self.t[0], block)
         held = phase >= block * (1.0 - holdout) - 0.5 * self.Ts
         return ~held, held

@@ -38,6 +38,18 @@ MASS_IDENTIFIABLE_RATIO = 1.5
 def mass_sampling_limit(b_v: float, Ts: float) -> float:
     """Smallest mass whose mechanical pole b_v/M lies below the Nyquist frequency π/Ts [kg].
 
+    Parameters
+    ----------
+    b_v : float
+        Viscous coefficient [N s/m].
+    Ts : float
+        Sampling period [s].
+
+    Returns
+    -------
+    float
+        ``b_v Ts / π`` [kg].
+
     Below it the piston follows the force within one sample and the mass shows only as a lag
     M/b_v shorter than Ts/π. The integrated motion equation then carries a structural bias
     (the force path inside each sample is unknown) that its bootstrap does not see: on a
@@ -83,12 +95,16 @@ def _mass(data: Dataset, friction: FrictionIdentifier, fit: np.ndarray,
     if lo > limit and hi / lo <= MASS_IDENTIFIABLE_RATIO:
         return est.M_, (lo, hi), "99 % bootstrap interval of the integrated motion equation", est
     nominal = float(np.sqrt(MASS_PRIOR[0] * MASS_PRIOR[1]))
+    if lo <= limit:
+        why = (f"With a viscous coefficient of {friction.b_v_:.0f} N s/m the mechanical pole "
+               f"b_v/M lies above the Nyquist frequency of the {data.Ts * 1e3:g} ms sampling "
+               f"for any mass below {limit:.3g} kg, where this estimate is biased "
+               f"(docs/identifiability.md).")
+    else:
+        why = f"It is wider than a factor {MASS_IDENTIFIABLE_RATIO:g}."
     notes.append(
         f"mass: not identifiable from this log: the 99 % interval of the estimate is "
-        f"[{lo:.3g}, {hi:.3g}] kg. With a viscous coefficient of {friction.b_v_:.0f} N s/m the "
-        f"mechanical pole b_v/M lies above the Nyquist frequency of the "
-        f"{data.Ts * 1e3:g} ms sampling for any mass below {limit:.3g} kg "
-        f"(docs/identifiability.md). θ1 uses the prior range "
+        f"[{lo:.3g}, {hi:.3g}] kg. {why} θ1 uses the prior range "
         f"{MASS_PRIOR} kg (nominal {nominal:.3g} kg, the geometric mean); give "
         f"--mass KG (datasheet plus weighed payload) to narrow it")
     return nominal, MASS_PRIOR, "prior range (not identifiable)", est
@@ -103,7 +119,7 @@ def identify(path: str | os.PathLike[str], holdout: float = 0.2, mass: float | N
     path : path-like
         The MCAP run log (contract 1).
     holdout : float
-        Fraction of the log (at its end) kept for validation.
+        Fraction of every 10 s of the log kept for validation (its end).
     mass : float, optional
         Known total moving mass [kg]; otherwise it is estimated (or the prior range is used).
     mass_tol : float

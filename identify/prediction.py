@@ -100,7 +100,18 @@ def position_innovations(P: np.ndarray, force_steps: np.ndarray, t: np.ndarray, 
     out : ndarray, shape (G, N)
         Output: measured minus predicted position [m] inside the stretches (left as it is
         elsewhere).
+
+    Raises
+    ------
+    ValueError
+        A stretch outside the log, empty, or ``starts`` and ``ends`` of different lengths.
     """
+    n = t.shape[0]
+    if starts.shape[0] != ends.shape[0]:
+        raise ValueError("starts and ends differ in length")
+    for j in range(starts.shape[0]):
+        if starts[j] < 0 or ends[j] > n or starts[j] >= ends[j]:
+            raise ValueError("a stretch lies outside the log or is empty")
     for g in prange(P.shape[0]):
         p = P[g]
         for j in range(starts.shape[0]):

@@ -19,7 +19,7 @@ from pneutune.control import plant
 from pneutune.control.plant_config import PlantConfig
 from pneutune.control.plant_params import S_STUCK, S_T, S_V, pack_plant
 
-from .dataset import Dataset
+from .dataset import Dataset, IdentificationError
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,8 @@ def validate(data: Dataset, held_out: np.ndarray, plant_cfg: PlantConfig,
     w = max(2, round(window / Ts))
     idx = np.flatnonzero(held_out)
     if idx.size < 2:
-        raise ValueError("no held-out samples to validate on")
+        raise IdentificationError(data.path, f"only {idx.size} held-out samples: the log is too "
+                                  f"short to validate the model on (--holdout)")
     pa_s = savgol_filter(data.p_a, 9, 2)
     pb_s = savgol_filter(data.p_b, 9, 2)
     ts, meas, sim = [], [], []

@@ -107,8 +107,10 @@ def test_pwm_curve_matches_delays(case):
 
 
 def test_friction_within_10_percent(case):
-    """Issue 4: F_C and b_v within 10 % of the plant's."""
+    """Issue 4: F_C and b_v within 10 % of the plant's, from the two-stage fit (an
+    identification run always slides faster than 20 mm/s in both directions)."""
     name, plant, r, _ = case
+    assert r.friction.coulomb_from_fast_, name
     assert r.friction.F_C_ == pytest.approx(plant.friction.F_C, rel=0.10), name
     assert r.friction.b_v_ == pytest.approx(plant.friction.b_v, rel=0.10), name
 
@@ -201,6 +203,38 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
         assert any(n.startswith("mass: not identifiable") for n in notes) is not reported
 
 
+def test_joint_friction_fit_without_fast_samples():
+    """With the fast samples of one direction masked out (v < -20 mm/s) the two-stage fit
+    cannot separate F_n from F_C: the joint Stribeck fit is used, and on data/run.mcap it lands
+    within 10 % (F_C -3.6 %, b_v +0.9 % measured). Without *any* sample faster than 15 mm/s
+    it gives F_C 29.6 N, b_v 5035 N s/m: the trade-off the two stages avoid."""
+    from pneutune.identify.dataset import load_dataset
+    from pneutune.identify.motion import FrictionIdentifier
+
+    data = load_dataset(Path(__file__).resolve().parents[1] / "data" / "run.mcap")
+    f = FrictionIdentifier(mass=1.05).fit(data, ~(data.v < -0.02))
+    assert not f.coulomb_from_fast_
+    assert f.F_C_ == pytest.approx(50.0, rel=0.10)
+    assert f.b_v_ == pytest.approx(3500.0, rel=0.10)
+    assert set(f.std_) == {"F_S", "F_C", "v_s", "alpha", "b_v", "F_n"}
+
+
+@pytest.mark.parametrize("seconds", [2.0, 8.05, 12.0])
+def test_split_holds_out_something_in_any_log(seconds):
+    """Dataset.split: complementary masks, about the holdout fraction held out, and at least
+    the log's tail held out when the log is shorter than the 10 s interleave."""
+    from pneutune.identify.dataset import Dataset
+
+    n = round(seconds / 0.004)
+    d = Dataset.__new__(Dataset)
+    object.__setattr__(d, "t", np.arange(n) * 0.004)
+    object.__setattr__(d, "rig", PlantConfig().rig)
+    fit, held = d.split(0.2)
+    assert (fit ^ held).all()
+    assert held.mean() == pytest.approx(0.2, abs=0.06), held.mean()
+    assert held[-1] or seconds > 10.0
+
+
 def test_known_mass_is_used(tmp_path):
     """--mass: θ1 is the given mass with its tolerance."""
     r = identify(Path(__file__).resolve().parents[1] / "data" / "run.mcap", mass=1.05,
@@ -210,9 +244,9 @@ def test_known_mass_is_used(tmp_path):
 
 
 def test_validation_nrmse_is_small(case):
-    """The identified model, driven by the logged duties on the held-out fifth of the log from
-    the measured state every 2 s, follows it: NRMSE of x below 0.05 and of the pressures below
-    0.2 (0.019 / 0.077 / 0.072 on data/run.mcap)."""
+    """The identified model, driven by the logged duties on the held-out fifth of every 10 s of
+    the log from the measured state every 2 s, follows it: NRMSE of x below 0.05 and of the
+    pressures below 0.2 (0.024 / 0.028 / 0.028 on data/run.mcap)."""
     name, _, r, _ = case
     assert r.model.fit.nrmse_x < 0.05, name
     assert r.model.fit.nrmse_p_a < 0.2 and r.model.fit.nrmse_p_b < 0.2, name

@@ -80,3 +80,14 @@ def test_wrong_delays_and_mass_show(run):
     heavy = pp.vec.copy()
     heavy[P_M] *= 2.0
     assert _innovation_rms(heavy, run) > 1.0e-6
+
+
+def test_stretches_outside_the_log_are_refused(run):
+    """position_innovations checks its stretches (numba would read memory silently)."""
+    pp, t, y, u, _ = run
+    out = np.zeros((1, len(t)))
+    for starts, ends in (([0], [len(t) + 1]), ([5], [5]), ([-1], [10])):
+        with pytest.raises(ValueError):
+            position_innovations(pp.vec[None, :], pp.force_steps, t, y[:, 0], y[:, 1], y[:, 2],
+                                 y[:, 3], u, np.array(starts, np.int64),
+                                 np.array(ends, np.int64), 0.3, out)
