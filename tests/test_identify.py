@@ -178,7 +178,8 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
     """An interval that looks tight is not reported when the mechanical pole b_v/M lies above
     the Nyquist frequency for its masses: the integrated estimate is then structurally biased
     (it gave [1.84, 2.10] kg for a true 1.05 kg on a noise-free log with extra position steps).
-    The limit for the default rig is b_v Ts/π = 3500 x 0.004/π = 4.46 kg."""
+    The limit for the default rig is b_v Ts/π = 3500 x 0.004/π = 4.46 kg. A reported interval
+    is the estimate's widened by 0.15 b_v Ts."""
     from types import SimpleNamespace
 
     from pneutune.identify import pipeline
@@ -196,10 +197,12 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
     monkeypatch.setattr(pipeline, "MassIdentifier", Fake)
     data = SimpleNamespace(Ts=0.004)
     friction = SimpleNamespace(b_v_=3500.0)
-    for ci, reported in (((1.84, 2.10), False), ((5.0, 5.5), True)):
+    margin = 0.15 * 3500.0 * 0.004  # the bias margin, 2.1 kg
+    for ci, reported in (((1.84, 2.10), False), ((20.0, 22.0), True)):
         notes: list[str] = []
         _, rng, _, _ = pipeline._mass(data, friction, None, None, 0.05, 0, notes)
-        assert (rng == ci) is reported, (ci, rng)
+        widened = (ci[0] - margin, ci[1] + margin)
+        assert (rng == pytest.approx(widened)) is reported, (ci, rng)
         assert any(n.startswith("mass: not identifiable") for n in notes) is not reported
 
 
@@ -233,6 +236,25 @@ def test_split_holds_out_something_in_any_log(seconds):
     assert (fit ^ held).all()
     assert held.mean() == pytest.approx(0.2, abs=0.06), held.mean()
     assert held[-1] or seconds > 10.0
+
+
+def test_mass_of_a_low_damping_rig(tmp_path):
+    """A long, thin, lightly damped cylinder (200 mm stroke, 50 mm bore, b_v 400 N s/m, M 2 kg):
+    the pole b_v/M (32 Hz) lies below the Nyquist frequency, the mass is estimated and its
+    interval must contain the truth. The integrated estimate runs high (2.13 kg measured,
+    +6.7 %; its bootstrap interval alone was [2.09, 2.18]), which the 0.15 b_v Ts margin
+    covers: [1.85, 2.42] kg measured."""
+    plant = PlantConfig().with_updates({
+        "rig": {"A_a": 0.00201, "A_b": 0.0017, "x_min": 0.0, "x_max": 0.2},
+        "friction": {"F_C": 20.0, "F_S": 30.0, "b_v": 400.0}, "mass": 2.0})
+    rec = simulate_identification(plant, seed=5)
+    rec.save(tmp_path / "run.mcap", rig=plant.rig_metadata(), run={"seed": "5"})
+    r = identify(tmp_path / "run.mcap")
+    lo, hi = r.model.mass_range
+    assert lo <= 2.0 <= hi
+    assert hi / lo <= 1.5
+    assert r.model.mass == pytest.approx(2.0, rel=0.10)
+    assert not any(n.startswith("mass: not") for n in r.model.notes)
 
 
 def test_known_mass_is_used(tmp_path):
