@@ -91,7 +91,7 @@ def delay_errors(d: Dataset, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             P[g, which:which + 4] += dl
             P[g, P_MINP:P_MINP + 4] = np.minimum(P[g, P_MINP:P_MINP + 4], P[g, P_DON:P_DON + 4])
         ra, rb = np.zeros((len(grid), d.n)), np.zeros((len(grid), d.n))
-        pressure_residuals(P, np.zeros((0, 2)), d.t, d.x, d.p_a, d.p_b, d.p_s, u, 1.0, ra, rb)
+        pressure_residuals(P, np.zeros((0, 2)), d.t, d.x, d.p_a, d.p_b, d.p_s, u, ra, rb)
         est = np.empty(4)
         for i in range(4):
             c = np.mean((ra if i < 2 else rb)[:, act[:, i]] ** 2, axis=1)

@@ -410,12 +410,13 @@ def run_open_loop(p: np.ndarray, s: np.ndarray, duties: np.ndarray, p_s: np.ndar
         advance(p, s, (k + 1) * Ts, p_s[k], force_steps)
 
 
+@njit(cache=True)
 def initial_state(p: np.ndarray, x0: float, p_a0: float, p_b0: float,
                   t0: float = 0.0) -> np.ndarray:
     """A plant state at rest at ``x0`` with the given chamber pressures and all valves closed.
 
     The piston starts stuck (v = 0). Use :func:`balanced_pressures` for pressures in force
-    balance.
+    balance. Compiled, so that the prediction kernels of identify start from it too.
     """
     s = np.zeros(N_STATE)
     s[S_X], s[S_V], s[S_PA], s[S_PB] = x0, 0.0, p_a0, p_b0

@@ -5,10 +5,9 @@ sample k, the plant of :mod:`pneutune.control.plant` (the one implementation, wi
 switching inside the sample) runs under the logged duties to sample k+1, and the prediction is
 compared with the measurement there. Two predictors:
 
-* :func:`pressure_residuals`: the position is reset to the measured value at every sample and
-  the pressures move a fraction ``gain`` toward theirs (``gain = 1``: reset; the velocity runs
-  free), so the residual of p_a and p_b at k+1 is the error of one sample of Eqs. (5)-(7) with
-  the PWM timing. It is what the valve delays show in.
+* :func:`pressure_residuals`: position and both pressures are reset to the measured values at
+  every sample (the velocity runs free), so the residual of p_a and p_b at k+1 is the error of
+  one sample of Eqs. (5)-(7) with the PWM timing. It is what the valve delays show in.
 * :func:`position_innovations`: a fixed-gain observer. At each sample the predicted position and
   pressures move a fraction ``gain`` toward the measurements; the position innovation is what the
   motion equation (1), with its mass, failed to predict. Over sliding stretches it carries the
@@ -25,24 +24,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from pneutune.control.plant import advance, set_duties
-from pneutune.control.plant_params import N_STATE, S_PA, S_PB, S_STUCK, S_T, S_X
-
-
-@njit(cache=True)
-def _fresh_state(x: float, pa: float, pb: float, t: float) -> np.ndarray:
-    """A plant state at rest at the measured position and pressures, valves closed."""
-    s = np.zeros(N_STATE)
-    s[S_X], s[S_PA], s[S_PB] = x, pa, pb
-    s[S_STUCK] = 1.0
-    s[S_T] = t
-    return s
+from pneutune.control.plant import advance, initial_state, set_duties
+from pneutune.control.plant_params import S_PA, S_PB, S_X
 
 
 @njit(cache=True, parallel=True)
 def pressure_residuals(P: np.ndarray, force_steps: np.ndarray, t: np.ndarray, x: np.ndarray,
                        pa: np.ndarray, pb: np.ndarray, ps: np.ndarray, u: np.ndarray,
-                       gain: float, res_a: np.ndarray, res_b: np.ndarray) -> None:
+                       res_a: np.ndarray, res_b: np.ndarray) -> None:
     """One-sample pressure prediction errors for each parameter vector.
 
     Parameters
@@ -55,21 +44,19 @@ def pressure_residuals(P: np.ndarray, force_steps: np.ndarray, t: np.ndarray, x:
         Sample times [s], position [m] and pressures [Pa abs] of the log.
     u : ndarray, shape (N, 4)
         Logged duties.
-    gain : float
-        Pull of the pressures toward the measurements at each sample, 0 < gain <= 1.
     res_a, res_b : ndarray, shape (G, N)
         Outputs: measured minus predicted p_a and p_b [Pa]; 0 at sample 0.
     """
     n = t.shape[0]
     for g in prange(P.shape[0]):
         p = P[g]
-        s = _fresh_state(x[0], pa[0], pb[0], t[0])
+        s = initial_state(p, x[0], pa[0], pb[0], t[0])
         res_a[g, 0] = 0.0
         res_b[g, 0] = 0.0
         for k in range(n - 1):
             s[S_X] = x[k]
-            s[S_PA] += gain * (pa[k] - s[S_PA])
-            s[S_PB] += gain * (pb[k] - s[S_PB])
+            s[S_PA] = pa[k]
+            s[S_PB] = pb[k]
             set_duties(p, s, t[k], u[k])
             advance(p, s, t[k + 1], ps[k], force_steps)
             res_a[g, k + 1] = pa[k + 1] - s[S_PA]
@@ -116,7 +103,7 @@ def position_innovations(P: np.ndarray, force_steps: np.ndarray, t: np.ndarray, 
         p = P[g]
         for j in range(starts.shape[0]):
             k0, k1 = starts[j], ends[j]
-            s = _fresh_state(x[k0], pa[k0], pb[k0], t[k0])
+            s = initial_state(p, x[k0], pa[k0], pb[k0], t[k0])
             for k in range(k0, k1):
                 e = x[k] - s[S_X]
                 out[g, k] = e

@@ -42,7 +42,7 @@ def _pressure_rms(p: np.ndarray, run) -> float:
     pp, t, y, u, _ = run
     ra, rb = np.zeros((1, len(t))), np.zeros((1, len(t)))
     pressure_residuals(p[None, :], pp.force_steps, t, y[:, 0], y[:, 1], y[:, 2], y[:, 3], u,
-                       1.0, ra, rb)
+                       ra, rb)
     return float(np.sqrt(np.mean(ra**2 + rb**2)))
 
 
