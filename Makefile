@@ -15,10 +15,10 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 ## demo: the whole loop on the simulated rig: log -> identify -> tune -> deploy -> reports/summary.md
-## (identify gets the rig's known moving mass: 4 ms logs cannot pin it, docs/identifiability.md)
+## (the identification run logs every 0.5 ms, so identify estimates the moving mass too)
 demo: $(STAMP)
 	$(BIN)/simulate --experiment identification --seed $(SEED) --out reports/demo/run.mcap
-	$(BIN)/identify reports/demo/run.mcap --mass 1.05 --out reports/identify
+	$(BIN)/identify reports/demo/run.mcap --out reports/identify
 	$(BIN)/tune --model reports/identify/model.yaml --trials $(TRIALS) --seed $(SEED) \
 		--out reports/tune
 	mkdir -p reports/deploy

@@ -90,7 +90,10 @@ class Recording:
         """
         from .runlog import RunLogWriter
 
-        meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__}
+        # sample_period: the logging period, which an identification run makes shorter than
+        # the control period rig.Ts (identification_run.IDENT_SAMPLE_PERIOD)
+        meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__,
+                "sample_period": repr(float(self.Ts))}
         meta.update({k: str(v) for k, v in run.items()})
         t = self.t
         # Values are stored rounded far below any sensor's resolution (position to 1 nm,
@@ -106,7 +109,10 @@ class Recording:
             w.write_many("/rig/valves", t,
                          {f"u_{v}": col for v, col in zip(VALVES, duties.T, strict=True)})
             if self.truth_ is not None:
-                w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, self.truth_.T, strict=True)))
+                # v to 1 nm/s, a to 1 um/s^2, forces to 1 uN, mass flows to 1e-12 kg/s
+                truth = np.column_stack([np.round(col, d) for col, d in
+                                         zip(self.truth_.T, (9, 6, 6, 6, 12, 12), strict=True)])
+                w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, truth.T, strict=True)))
             if self.reference_ is not None:
                 ok = np.isfinite(self.reference_[:, 0])
                 w.write_many("/control/reference", t[ok],

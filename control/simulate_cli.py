@@ -25,7 +25,10 @@ Two modes:
       the identification run: each valve charging/discharging its chamber with the piston on
       an end stop (full duty and a duty sweep), ramps at several speeds in both directions,
       sines of rising frequency, rest. No tuned controller is needed: a proportional loop
-      designed from the stroke alone moves the piston. --out is required.
+      designed from the stroke alone moves the piston. --out is required. The loop updates
+      the duties every rig.Ts (4 ms); the sensors are logged every --sample-period (default
+      0.5 ms, a 2 kHz acquisition), fast enough to resolve the lag of the motion behind the
+      pressure force that carries the moving mass (docs/identifiability.md).
 
   --controller C.yaml --scenario S
       closed loop: the controller of C.yaml (contract 4) tracks a scenario; prints E_p and
@@ -42,6 +45,7 @@ Two modes:
 EPILOG = """\
 examples:
   simulate --experiment identification --seed 3 --out /tmp/r.mcap
+  simulate --experiment identification --sample-period 0.004 --out /tmp/r4ms.mcap
   simulate --controller data/controller-paper.yaml --scenario table1
   simulate --controller data/controller-paper.yaml --scenario all --json
   simulate --controller reports/tune/controller.yaml --scenario sine-0.5hz --out run.mcap \\
@@ -70,7 +74,7 @@ def _plant_meta(plant: str | None) -> dict[str, str]:
 
 
 def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
-    from .identification_run import simulate_identification
+    from .identification_run import IDENT_SAMPLE_PERIOD, simulate_identification
 
     if args.out is None:
         raise ExperimentError("--experiment identification needs --out F.mcap")
@@ -81,14 +85,17 @@ def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
         bar.n = done
         bar.refresh()
 
-    rec = simulate_identification(plant_cfg, seed=seed, progress=progress)
+    period = IDENT_SAMPLE_PERIOD if args.sample_period is None else args.sample_period
+    rec = simulate_identification(plant_cfg, seed=seed, progress=progress,
+                                  sample_period=period)
     bar.close()
     run_meta = {"seed": str(seed), "experiment": "identification", **_plant_meta(args.plant)}
     rec.save(args.out, rig=plant_cfg.rig_metadata(), run=run_meta)
     size = os.path.getsize(args.out)
     summary = {
         "out": args.out, "experiment": "identification", "seed": seed,
-        "duration_s": rec.n * rec.Ts, "samples": rec.n, "segments": len(rec.segments_),
+        "duration_s": rec.n * rec.Ts, "samples": rec.n, "sample_period": rec.Ts,
+        "segments": len(rec.segments_),
         "topics": ["/rig/sensors", "/rig/valves", "/control/reference", "/experiment/segment",
                    "/sim/truth"],
         "bytes": size, "sha256": _sha256(args.out),
@@ -97,7 +104,8 @@ def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
         print_json(summary)
     else:
         info(f"wrote {args.out}: identification run, {summary['duration_s']:.1f} s, "
-             f"{rec.n} samples, {len(rec.segments_)} segments, {size / 1e6:.2f} MB, seed {seed}")
+             f"{rec.n} samples every {rec.Ts * 1e3:g} ms, {len(rec.segments_)} segments, "
+             f"{size / 1e6:.2f} MB, seed {seed}")
         info("topics: " + ", ".join(summary["topics"]))
     return 0
 
@@ -179,6 +187,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--plant", metavar="P.yaml", help="plant.yaml (default: the paper's rig)")
     parser.add_argument("--seed", type=int, metavar="N",
                         help="sensor-noise seed (default: sim.seed of the plant, 1)")
+    parser.add_argument("--sample-period", type=float, metavar="S",
+                        help="identification run: sensor logging period [s], dividing rig.Ts "
+                             "(default 0.0005)")
     parser.add_argument("--plots", metavar="DIR", help="write PNG figures (closed loop) to DIR")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (prose goes to stderr)")
