@@ -49,7 +49,8 @@ class ThetaBounds:
 def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
                  smooth: np.ndarray, smooth_boot: np.ndarray, stribeck_b_v: float,
                  F_C: float, F_S: float, D: np.ndarray, D_std: np.ndarray,
-                 low_speed_margin: tuple[float, float] = (0.0, 0.0)) -> ThetaBounds:
+                 low_speed_margin: tuple[float, float] = (0.0, 0.0),
+                 stiction_resolved: bool | None = None) -> ThetaBounds:
     """Assemble θ and its bounds.
 
     Parameters
@@ -67,6 +68,9 @@ def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
     low_speed_margin : (float, float)
         Extra half-widths of (b_v, A_f) when the log has few slow sliding samples: a
         Coulomb-level error ΔF is then absorbed by the viscous term as ΔF / v_rms.
+    stiction_resolved : bool, optional
+        Whether the friction fit measured the stiction peak
+        (``FrictionIdentifier.stiction_resolved_``); default: F_S - F_C >= 2 % of F_C.
     """
     sd = np.std(smooth_boot, axis=0, ddof=1) if len(smooth_boot) > 1 else np.zeros(3)
     Fn, bv, Af = smooth
@@ -76,7 +80,8 @@ def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
     # the log does not resolve the peak (F_S = F_C), allow the stiction excess of typical
     # cylinder seals, F_S up to 1.5 F_C (a prior, stated in the basis).
     excess = max(abs(Af - F_C), abs(F_S - Af))
-    unresolved = F_S - F_C < 0.02 * max(F_C, 1e-9)
+    unresolved = (F_S - F_C < 0.02 * max(F_C, 1e-9) if stiction_resolved is None
+                  else not stiction_resolved)
     if unresolved:
         excess = max(excess, STICTION_PRIOR * F_C)
     half_Af = max(Z * sd[2] + excess + low_speed_margin[1], MIN_HALF["A_f"])

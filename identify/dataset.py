@@ -28,8 +28,10 @@ X_MARGIN = 2.0e-3
 #: Period of the fit / held-out interleave [s] (Dataset.split): at least a 2 s validation
 #: window held out in each.
 HOLDOUT_BLOCK = 10.0
-#: Savitzky-Golay window (samples) and order for velocity estimates.
+#: Savitzky-Golay window (samples at the paper's 4 ms) and order for velocity estimates; the
+#: window spans SG_SPAN seconds at any sampling period.
 SG_WINDOW, SG_ORDER = 11, 3
+SG_SPAN = 0.044
 
 
 class IdentificationError(LogError):
@@ -53,7 +55,11 @@ class Dataset:
     u : ndarray (N, 4)
         Commanded duties of a_in, a_out, b_in, b_out, held from each sample to the next.
     v : ndarray (N,)
-        Velocity [m/s] by a Savitzky-Golay derivative of x (non-causal, no phase lag).
+        Velocity [m/s] by a Savitzky-Golay derivative of x over :data:`SG_SPAN` (non-causal,
+        no phase lag).
+    sample_period : float
+        Logging period [s]: the run metadata's ``sample_period``, else ``rig.Ts``. An
+        identification run logs faster than its control period ``rig.Ts``.
     """
 
     path: str
@@ -66,6 +72,7 @@ class Dataset:
     p_s: np.ndarray
     u: np.ndarray
     v: np.ndarray
+    sample_period: float = 0.0
 
     @property
     def n(self) -> int:
@@ -74,8 +81,34 @@ class Dataset:
 
     @property
     def Ts(self) -> float:
-        """Sampling period [s]."""
-        return self.rig.Ts
+        """Sampling period of these arrays [s] (``rig.Ts`` is the control period)."""
+        return self.sample_period or self.rig.Ts
+
+    def at_control_rate(self) -> Dataset:
+        """The samples at the control instants when the log is sampled faster than ``rig.Ts``.
+
+        The valve, PWM-curve and friction fits and the validation were built for samples at the
+        control period, with the duties held from one sample to the next. A log sampled k times
+        per control period whose duties change only on one phase of every k samples is cut
+        down to those samples, exactly; any other log is returned as it is.
+
+        Returns
+        -------
+        Dataset
+        """
+        k = round(self.rig.Ts / self.Ts)
+        if k <= 1 or abs(k * self.Ts - self.rig.Ts) > 1e-6 * self.rig.Ts:
+            return self
+        changes = np.flatnonzero(np.any(np.diff(self.u, axis=0) != 0.0, axis=1)) + 1
+        phases = np.unique(changes % k)
+        if phases.size > 1:
+            return self
+        k0 = int(phases[0]) if phases.size else 0
+        sl = slice(k0, None, k)
+        x = self.x[sl]
+        return Dataset(path=self.path, sha256=self.sha256, rig=self.rig, t=self.t[sl], x=x,
+                       p_a=self.p_a[sl], p_b=self.p_b[sl], p_s=self.p_s[sl], u=self.u[sl],
+                       v=_velocity(x, self.rig.Ts), sample_period=self.rig.Ts)
 
     @property
     def duration(self) -> float:
@@ -132,7 +165,36 @@ def _rig_from_log(log: RunLog) -> RigConfig:
         raise IdentificationError(log.path, f"{err.key}: {err.message}") from None
 
 
-def check_plausible(log: RunLog, rig: RigConfig) -> None:
+def sample_period(log: RunLog, rig: RigConfig) -> float:
+    """The log's sampling period [s]: run metadata ``sample_period``, else ``rig.Ts``.
+
+    Raises
+    ------
+    IdentificationError
+        If ``sample_period`` is not a positive decimal of seconds at most ``rig.Ts``.
+    """
+    raw = log.run.get("sample_period")
+    if raw is None:
+        return rig.Ts
+    try:
+        h = float(raw)
+    except ValueError:
+        h = float("nan")
+    if not (np.isfinite(h) and 0.0 < h <= rig.Ts * (1.0 + 1e-9)):
+        raise IdentificationError(log.path, f"metadata run.sample_period is {raw!r}; expected "
+                                  f"the logging period in seconds, a decimal in (0, rig.Ts = "
+                                  f"{rig.Ts:g}]")
+    return h
+
+
+def _velocity(x: np.ndarray, h: float) -> np.ndarray:
+    """Savitzky-Golay velocity over about SG_SPAN seconds of samples ``h`` apart."""
+    win = max(SG_ORDER + 2, round(SG_SPAN / h) | 1)
+    win = min(win, len(x) - (1 - len(x) % 2))
+    return savgol_filter(x, win, SG_ORDER, deriv=1, delta=h)
+
+
+def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None) -> None:
     """Unit and range checks that the reader does not do.
 
     Raises
@@ -162,16 +224,18 @@ def check_plausible(log: RunLog, rig: RigConfig) -> None:
         if lo < -1e-9 or hi > 1.0 + 1e-9:
             raise IdentificationError(
                 name, f"/rig/valves.{col} spans {lo:.6g}..{hi:.6g}; duties must be within 0..1")
+    period = rig.Ts if period is None else period
     t = s.index.to_numpy()
     if len(t) < 100:
         raise IdentificationError(name, f"/rig/sensors has {len(t)} samples; identification "
                                   f"needs at least 100 (0.4 s at Ts = 4 ms), ideally a whole "
                                   f"identification run")
     dt = np.diff(t)
-    if np.any(np.abs(dt - rig.Ts) > 0.25 * rig.Ts):
-        k = int(np.argmax(np.abs(dt - rig.Ts) > 0.25 * rig.Ts))
+    if np.any(np.abs(dt - period) > 0.25 * period):
+        k = int(np.argmax(np.abs(dt - period) > 0.25 * period))
+        what = "rig.Ts" if period == rig.Ts else "run.sample_period"
         raise IdentificationError(
-            name, f"/rig/sensors is not sampled every rig.Ts = {rig.Ts} s: samples at "
+            name, f"/rig/sensors is not sampled every {what} = {period} s: samples at "
             f"t = {t[k]:.6f} s and {t[k + 1]:.6f} s are {dt[k]:.6g} s apart (gaps or a "
             f"different sampling period)")
 
@@ -200,10 +264,9 @@ def load_dataset(path: str | os.PathLike[str]) -> Dataset:
     """
     log = read_run_log(Path(path))
     rig = _rig_from_log(log)
-    check_plausible(log, rig)
+    h = sample_period(log, rig)
+    check_plausible(log, rig, h)
     t, sens, u = _align(log)
     x = sens[:, 0]
-    win = min(SG_WINDOW, len(x) - (1 - len(x) % 2))
-    v = savgol_filter(x, win, SG_ORDER, deriv=1, delta=rig.Ts)
     return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
-                   p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=v)
+                   p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h)

@@ -72,6 +72,9 @@ class FrictionIdentifier(Identifier):
     ----------
     F_S_, F_C_, v_s_, alpha_, b_v_, F_n_ : float
         Stribeck parameters [N, N, m/s, -, N s/m] and the constant force F_n [N].
+    stiction_resolved_ : bool
+        The stiction excess F_S - F_C shows (at least 2 % of F_C) and the Stribeck shape is an
+        interior optimum (alpha and v_s off their bounds); otherwise F_S is not measured.
     std_ : dict
         Standard errors of the Stribeck fit.
     smooth_ : ndarray (3,)
@@ -145,6 +148,11 @@ class FrictionIdentifier(Identifier):
         F_S, F_C, v_s, alpha, b_v, F_n = _full(sol.x, fixed)
         if F_C > F_S:  # the Stribeck bump vanished: the data show no stiction excess
             F_S = F_C
+        # a shape on its bounds (alpha or v_s) is no interior optimum: F_S is then not measured
+        shape = np.array([v_s, alpha])
+        on_bound = np.any(np.abs(shape - lo[2:4]) <= 0.01 * lo[2:4]) or np.any(
+            np.abs(shape - hi[2:4]) <= 0.01 * hi[2:4])
+        self.stiction_resolved_ = bool(F_S - F_C >= 0.02 * max(F_C, 1e-9) and not on_bound)
         self.F_S_, self.F_C_, self.v_s_, self.alpha_, self.b_v_, self.F_n_ = (
             float(F_S), float(F_C), float(v_s), float(alpha), float(b_v), float(F_n))
         self.coulomb_from_fast_ = fixed is not None

@@ -20,11 +20,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pneutune.control.constants import MODEL_SCHEMA, VALVES
+from pneutune.control.errors import LogError
 from pneutune.control.model_config import ModelConfig
 from pneutune.control.plant_config import PlantConfig
 
 from .bounds import ThetaBounds, theta_bounds
 from .dataset import Dataset, load_dataset
+from .mass import MIN_SAMPLES_PER_PWM, LagMassIdentifier
 from .motion import FrictionIdentifier, MassIdentifier
 from .validation import Validation, validate
 from .valves import ValveIdentifier
@@ -78,20 +80,48 @@ class IdentifyResult:
     mass: float
     mass_range: tuple[float, float]
     mass_basis: str
-    mass_estimate: MassIdentifier | None
+    mass_estimate: MassIdentifier | LagMassIdentifier | None
     theta: ThetaBounds
     validation: Validation
     model: ModelConfig
     plant: PlantConfig
     notes: list[str] = field(default_factory=list)
+    #: the log at its own sampling period (``data`` holds the control instants the fits use)
+    log: Dataset | None = None
+
+
+def _lag_mass(log: Dataset, friction: FrictionIdentifier, fit: np.ndarray, seed: int,
+              notes: list[str]) -> LagMassIdentifier | None:
+    """The lag estimate of the mass when its interval is narrow enough, else None (noted)."""
+    try:
+        est = LagMassIdentifier(friction, seed=seed).fit(log, fit)
+    except (LogError, ValueError, np.linalg.LinAlgError) as exc:
+        notes.append(f"mass: the lag of the motion behind the pressure force gives no estimate "
+                     f"({exc})")
+        return None
+    lo, hi = est.ci_
+    if lo > 0.0 and hi / lo <= MASS_IDENTIFIABLE_RATIO:
+        return est
+    notes.append(f"mass: the lag of the motion behind the pressure force gives {est.M_:.3g} kg "
+                 f"in [{lo:.3g}, {hi:.3g}] kg, wider than a factor {MASS_IDENTIFIABLE_RATIO:g} "
+                 f"(on every other sample: {est.M_half_:.3g} kg)")
+    return None
 
 
 def _mass(data: Dataset, friction: FrictionIdentifier, fit: np.ndarray,
-          mass: float | None, mass_tol: float, seed: int,
-          notes: list[str]) -> tuple[float, tuple[float, float], str, MassIdentifier | None]:
+          mass: float | None, mass_tol: float, seed: int, notes: list[str],
+          log: Dataset | None = None, log_fit: np.ndarray | None = None,
+          ) -> tuple[float, tuple[float, float], str, MassIdentifier | LagMassIdentifier | None]:
     if mass is not None:
         rng = (mass * (1.0 - mass_tol), mass * (1.0 + mass_tol))
         return mass, rng, f"given by the user (±{mass_tol:.0%})", None
+    if log is not None and 1.0 / (log.rig.pwm_hz * log.Ts) >= MIN_SAMPLES_PER_PWM:
+        lag = _lag_mass(log, friction, log_fit, seed, notes)
+        if lag is not None:
+            return lag.M_, lag.ci_, (
+                f"99 % bootstrap interval of tau b_v, tau the lag of the motion behind the "
+                f"pressure force ({log.Ts * 1e3:g} ms samples), widened by "
+                f"{lag.discretisation_:.3g} kg, the change on every other sample"), lag
     try:
         est = MassIdentifier(friction, seed=seed).fit(data, fit)
     except Exception as exc:  # too few sliding windows: report, use the prior
@@ -110,7 +140,8 @@ def _mass(data: Dataset, friction: FrictionIdentifier, fit: np.ndarray,
         why = (f"With a viscous coefficient of {friction.b_v_:.0f} N s/m the mechanical pole "
                f"b_v/M lies above the Nyquist frequency of the {data.Ts * 1e3:g} ms sampling "
                f"for any mass below {limit:.3g} kg, where this estimate is biased "
-               f"(docs/identifiability.md).")
+               f"(docs/identifiability.md); an identification run logged every 0.5 ms "
+               f"resolves the mass (simulate --sample-period).")
     else:
         why = f"It is wider than a factor {MASS_IDENTIFIABLE_RATIO:g}."
     notes.append(
@@ -143,29 +174,36 @@ def identify(path: str | os.PathLike[str], holdout: float = 0.2, mass: float | N
     LogError
         A bad log (typed, naming the file and what is wrong) or too little excitation.
     """
-    data = load_dataset(path)
+    log = load_dataset(path)
+    # valves, PWM curve, friction and validation work on the control instants; the mass on
+    # every logged sample (an identification run logs 8 samples per control period)
+    data = log.at_control_rate()
     fit, held = data.split(holdout)
     notes: list[str] = []
     valves = ValveIdentifier().fit(data, fit)
     notes += valves.notes_
     friction = FrictionIdentifier(mass=mass if mass is not None else 1.0).fit(data, fit)
-    M, M_range, M_basis, M_est = _mass(data, friction, fit, mass, mass_tol, seed, notes)
+    M, M_range, M_basis, M_est = _mass(data, friction, fit, mass, mass_tol, seed, notes,
+                                       log=log, log_fit=log.split(holdout)[0])
     if mass is None:  # redo the (small) inertial term with the mass used
         friction = FrictionIdentifier(mass=M).fit(data, fit)
     boot = friction.smooth_bootstrap(n_boot=300, block=50, seed=seed)
     theta = theta_bounds(M, M_range, M_basis, friction.smooth_, boot, friction.b_v_,
                          friction.F_C_, friction.F_S_, valves.D_, valves.D_std_,
-                         _low_speed_margin(data, friction, notes))
-    if friction.F_S_ - friction.F_C_ < 0.02 * friction.F_C_:
-        notes.append("friction: no stiction excess over the Coulomb level shows in the sliding "
-                     "samples (F_S = F_C); the Stribeck velocity and exponent are weakly "
-                     "identified from 4 ms samples")
+                         _low_speed_margin(data, friction, notes),
+                         stiction_resolved=friction.stiction_resolved_)
+    if not friction.stiction_resolved_:
+        notes.append("friction: the stiction peak is not resolved by the sliding samples "
+                     f"(F_S {friction.F_S_:.3g} N, F_C {friction.F_C_:.3g} N, exponent "
+                     f"{friction.alpha_:.3g}); the Stribeck velocity and exponent are weakly "
+                     "identified from 4 ms samples, and θ4 allows a stiction excess of half "
+                     "F_C")
     period = 1.0 / data.rig.pwm_hz
     plant_cfg = _plant(data, valves, friction, M)
     validation = validate(data, held, plant_cfg)
     model = _model(data, valves, friction, M, M_range, theta, validation, notes, period)
     return IdentifyResult(data, valves, friction, M, M_range, M_basis, M_est, theta,
-                          validation, model, plant_cfg, notes)
+                          validation, model, plant_cfg, notes, log)
 
 
 #: Slow sliding samples (2-20 mm/s) below which the Coulomb level is poorly separated from the

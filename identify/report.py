@@ -139,6 +139,9 @@ def format_summary(r: IdentifyResult) -> str:
     w0 = max(len(a) for a, _, _ in rows)
     w1 = max(len(b) for _, b, _ in rows)
     lines = [f"identify {r.data.path}: {r.data.duration:.1f} s, {r.data.n} samples"]
+    if r.log is not None and r.log.n != r.data.n:
+        lines[0] += (f" at the {r.data.Ts * 1e3:g} ms control instants ({r.log.n} logged every "
+                     f"{r.log.Ts * 1e3:g} ms; the mass uses them all)")
     lines += [f"  {a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows]
     lines += [f"  note: {n}" for n in r.notes]
     return "\n".join(lines)

@@ -158,10 +158,10 @@ class ValveIdentifier(Identifier):
         self._vol_b = -r.n * self._pb * np.diff(Vb) / self._Vb
         self._p0 = r.p0
         self._T0 = r.T0
-        self._Ts = r.Ts
-        w = pwm_window(r.Ts, r.pwm_hz)
+        self._Ts = d.Ts
+        w = pwm_window(d.Ts, r.pwm_hz)
         #: samples a duty change can take to act fully (a PWM period plus the valve delays)
-        self._lookback = int(np.ceil((1.0 / r.pwm_hz + 0.01) / r.Ts))
+        self._lookback = int(np.ceil((1.0 / r.pwm_hz + 0.01) / d.Ts))
         starts = np.arange(0, d.n - 1 - w, self.stride)
         # windows where an open valve is near equilibrium (|p_u - p_d| < equilibrium_band)
         # carry sensor noise, not information on C and b

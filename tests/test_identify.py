@@ -2,9 +2,10 @@
 defaults (STYLE.md §6: one recover-the-truth suite), bad logs, model.yaml round trip.
 
 The truth is the plant.yaml each log was simulated from. Tolerances are issue 4's: C and b within
-5 %, F_C and b_v within 10 %, θ bounds containing the truth. The moving mass is not
-identifiable from 4 ms samples of these rigs (docs/identifiability.md): the tests require its
-interval to contain the truth and the model to say so, not a 5 % estimate.
+5 %, F_C and b_v within 10 %, M within 5 %, θ bounds containing the truth. The identification
+run logs every 0.5 ms (8 samples per 4 ms control period); the mass comes from the lag of the
+motion behind the pressure force, which 4 ms samples cannot resolve (docs/identifiability.md,
+tests/test_mass.py for the 4 ms case).
 """
 
 from __future__ import annotations
@@ -117,11 +118,14 @@ def test_friction_within_10_percent(case):
 
 def test_theta_bounds_contain_truth(case):
     """θ_min <= θ_true <= θ_max for every component. The true A_f is the smooth model's best
-    fit (Eqs. 3-4) to the plant's true friction force over the log's sliding samples
-    (/sim/truth, which identify itself never reads)."""
+    fit (Eqs. 3-4) to the plant's true friction force over the log's sliding samples at the
+    control instants, where identify fits it and the controller runs (/sim/truth, which
+    identify itself never reads; over all 0.5 ms samples the PWM ripple of the velocity moves
+    that fit by up to 5 N)."""
     name, plant, r, rec = case
     th = r.model.theta
-    v, F_f = rec.truth_[:, 0], rec.truth_[:, 2]
+    k = round(plant.rig.Ts / rec.Ts)
+    v, F_f = rec.truth_[::k, 0], rec.truth_[::k, 2]
     slide = np.abs(v) > 2e-3
     A = np.column_stack([v[slide], smooth_sign(v[slide])])
     (_, A_f_true), *_ = np.linalg.lstsq(A, F_f[slide], rcond=None)
@@ -159,8 +163,8 @@ def test_unpinnable_b_gets_an_honest_range(tmp_path):
 def test_noise_free_log(tmp_path):
     """A simulated log without sensor noise or quantisation (a user's idealised plant.yaml) must
     identify, not crash: the bounded fit's slack once left the leak at -4e-17, which the plant
-    schema rejects. Without noise, C comes out within 1 % (0.04 % measured); the mass is
-    still reported as not identifiable, with a range that contains it."""
+    schema rejects. Without noise, C comes out within 1 % (0.04 % measured), and the mass
+    within 5 % with a range that contains it."""
     plant = PlantConfig().with_updates({"sensors": {"x_noise": 0.0, "x_step": 0.0,
                                                     "p_noise": 0.0}})
     rec = simulate_identification(plant, seed=1)
@@ -169,7 +173,7 @@ def test_noise_free_log(tmp_path):
     assert r.valves.leak_C_ >= 0.0
     lo, hi = r.model.mass_range
     assert lo <= plant.total_mass <= hi
-    assert any(n.startswith("mass: not") for n in r.model.notes)
+    assert r.model.mass == pytest.approx(plant.total_mass, rel=0.05)
     for i, truth in enumerate(plant.valves.ordered()):
         assert r.valves.C_[i] == pytest.approx(truth.C, rel=0.01), VALVE_NAMES[i]
 
@@ -209,12 +213,13 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
 def test_joint_friction_fit_without_fast_samples():
     """With the fast samples of one direction masked out (v < -20 mm/s) the two-stage fit
     cannot separate F_n from F_C: the joint Stribeck fit is used, and on data/run.mcap it lands
-    within 10 % (F_C -3.6 %, b_v +0.9 % measured). Without *any* sample faster than 15 mm/s
+    within 10 % (F_C -3.1 %, b_v +0.8 % measured). Without *any* sample faster than 15 mm/s
     it gives F_C 29.6 N, b_v 5035 N s/m: the trade-off the two stages avoid."""
     from pneutune.identify.dataset import load_dataset
     from pneutune.identify.motion import FrictionIdentifier
 
-    data = load_dataset(Path(__file__).resolve().parents[1] / "data" / "run.mcap")
+    log = load_dataset(Path(__file__).resolve().parents[1] / "data" / "run.mcap")
+    data = log.at_control_rate()  # the 4 ms control instants, as identify fits friction
     f = FrictionIdentifier(mass=1.05).fit(data, ~(data.v < -0.02))
     assert not f.coulomb_from_fast_
     assert f.F_C_ == pytest.approx(50.0, rel=0.10)
@@ -243,11 +248,12 @@ def test_mass_of_a_low_damping_rig(tmp_path):
     the pole b_v/M (32 Hz) lies below the Nyquist frequency, the mass is estimated and its
     interval must contain the truth. The integrated estimate runs high (2.13 kg measured,
     +6.7 %; its bootstrap interval alone was [2.09, 2.18]), which the 0.15 b_v Ts margin
-    covers: [1.85, 2.42] kg measured."""
+    covers: [1.85, 2.42] kg measured. This is the 4 ms path (a log at the control rate), where
+    the lag estimator declines."""
     plant = PlantConfig().with_updates({
         "rig": {"A_a": 0.00201, "A_b": 0.0017, "x_min": 0.0, "x_max": 0.2},
         "friction": {"F_C": 20.0, "F_S": 30.0, "b_v": 400.0}, "mass": 2.0})
-    rec = simulate_identification(plant, seed=5)
+    rec = simulate_identification(plant, seed=5, sample_period=plant.rig.Ts)
     rec.save(tmp_path / "run.mcap", rig=plant.rig_metadata(), run={"seed": "5"})
     r = identify(tmp_path / "run.mcap")
     lo, hi = r.model.mass_range
@@ -268,7 +274,7 @@ def test_known_mass_is_used(tmp_path):
 def test_validation_nrmse_is_small(case):
     """The identified model, driven by the logged duties on the held-out fifth of every 10 s of
     the log from the measured state every 2 s, follows it: NRMSE of x below 0.05 and of the
-    pressures below 0.2 (0.024 / 0.028 / 0.028 on data/run.mcap)."""
+    pressures below 0.2 (0.007 / 0.004 / 0.005 on data/run.mcap)."""
     name, _, r, _ = case
     assert r.model.fit.nrmse_x < 0.05, name
     assert r.model.fit.nrmse_p_a < 0.2 and r.model.fit.nrmse_p_b < 0.2, name
@@ -280,3 +286,13 @@ def test_model_yaml_round_trips(case, tmp_path):
     path = tmp_path / "model.yaml"
     save_model(r.model, path)
     assert load_model(path) == r.model
+
+
+def test_mass_within_5_percent(case):
+    """Issue 4: M within 5 % of the plant's total moving mass, from the lag of the motion behind
+    the pressure force in the 0.5 ms identification log (identify/mass.py); the model does not
+    call it unidentifiable. Measured: docs/identifiability.md."""
+    name, plant, r, _ = case
+    assert r.model.mass == pytest.approx(plant.total_mass, rel=0.05), name
+    assert "lag" in r.mass_basis, (name, r.mass_basis)
+    assert not any(n.startswith("mass: not") for n in r.model.notes), name

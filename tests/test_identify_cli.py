@@ -32,7 +32,10 @@ def source():
 def _write(path: Path, source, topics=("/rig/sensors", "/rig/valves"), rig=None,
            edit=None) -> Path:
     """A log made from data/run.mcap's topics, optionally edited (column arrays)."""
-    with RunLogWriter(path, rig=rig or source.rig, run={"seed": "1"}) as w:
+    run = {"seed": "1"}
+    if "sample_period" in source.run:  # the identification run logs faster than rig.Ts
+        run["sample_period"] = source.run["sample_period"]
+    with RunLogWriter(path, rig=rig or source.rig, run=run) as w:
         for topic in topics:
             df = source[topic]
             cols = {c: df[c].to_numpy().copy() for c in df.columns}
