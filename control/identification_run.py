@@ -301,15 +301,16 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
             rec.sensors_[k] = y
             if has_truth:
                 rec.truth_[k] = rig.truth()  # type: ignore[attr-defined]
+            control = j % per_control == 0
             if seg.reference is not None:
                 xr, vr, ar = seg.reference(j * rig.Ts)
                 rec.reference_[k] = (xr, vr, ar)
-                if j % per_control == 0:
+                if control:
                     duties = position_loop(float(y[0]), xr, band)
-            elif j % per_control == 0:
+            elif control:
                 duties = seg.duties if seg.duties is not None else np.zeros(4)
             rec.duties_[k] = duties
-            if j % per_control == 0:
+            if control:
                 rig.write(duties)
             rig.advance()
             k += 1

@@ -28,10 +28,8 @@ X_MARGIN = 2.0e-3
 #: Period of the fit / held-out interleave [s] (Dataset.split): at least a 2 s validation
 #: window held out in each.
 HOLDOUT_BLOCK = 10.0
-#: Savitzky-Golay window (samples at the paper's 4 ms) and order for velocity estimates; the
-#: window spans SG_SPAN seconds at any sampling period.
-SG_WINDOW, SG_ORDER = 11, 3
-SG_SPAN = 0.044
+#: Savitzky-Golay order and window [s] for velocity estimates (11 samples at the paper's 4 ms).
+SG_ORDER, SG_SPAN = 3, 0.044
 
 
 class IdentificationError(LogError):

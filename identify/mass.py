@@ -31,6 +31,7 @@ Two things set the interval:
 from __future__ import annotations
 
 import numpy as np
+from scipy.integrate import cumulative_trapezoid
 from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter, savgol_filter
 
@@ -38,7 +39,7 @@ from pneutune.control.errors import LogError
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
-from .motion import FrictionIdentifier
+from .motion import FrictionIdentifier, stribeck
 
 #: Sliding speed above which windows are used [m/s] (as the Coulomb stage of the friction fit).
 V_LAG = 0.02
@@ -52,6 +53,11 @@ LAG_MARGIN = 0.01
 MIN_SAMPLES_PER_PWM = 8
 #: Fewest windows for an estimate.
 MIN_WINDOWS = 20
+
+
+def samples_per_pwm(data: Dataset) -> float:
+    """Logged samples per PWM period (the lag estimate needs MIN_SAMPLES_PER_PWM)."""
+    return 1.0 / (data.rig.pwm_hz * data.Ts)
 
 
 def lag_filter(u: np.ndarray, tau: float, h: float) -> np.ndarray:
@@ -103,13 +109,11 @@ class _LagProblem:
         f = friction
         v = savgol_filter(x, max(5, round(0.005 / h) | 1), 3, deriv=1, delta=h)
         sgn = np.sign(v)
-        excess = (f.F_S_ - f.F_C_) * np.exp(-(np.abs(v) / f.v_s_) ** f.alpha_) * sgn
-
-        def integral(y: np.ndarray) -> np.ndarray:
-            return np.concatenate([[0.0], np.cumsum(0.5 * (y[1:] + y[:-1]) * h)])
-
+        # the Stribeck excess over the Coulomb level: Eq. (2) with F_C and b_v set to zero
+        excess = stribeck(v, f.F_S_ - f.F_C_, 0.0, f.v_s_, f.alpha_, 0.0)
         self.h = h
-        self.signals = (integral(F_p - excess), integral(sgn), np.arange(x.shape[0]) * h)
+        self.signals = (cumulative_trapezoid(F_p - excess, dx=h, initial=0.0),
+                        cumulative_trapezoid(sgn, dx=h, initial=0.0), np.arange(x.shape[0]) * h)
         group = sliding_windows(ok & (np.abs(v) > V_LAG), max(8, round(LAG_WINDOW / h)),
                                 round(LAG_MARGIN / h))
         self.sel = group >= 0
@@ -206,7 +210,7 @@ class LagMassIdentifier(Identifier):
             period), or fewer than MIN_WINDOWS sliding windows.
         """
         h = data.Ts
-        per_pwm = 1.0 / (data.rig.pwm_hz * h)
+        per_pwm = samples_per_pwm(data)
         if per_pwm < MIN_SAMPLES_PER_PWM:
             raise IdentificationError(
                 data.path, f"{per_pwm:.1f} samples per PWM period; the lag of the motion "
@@ -227,9 +231,8 @@ class LagMassIdentifier(Identifier):
         self.residual_std_ = rms
         self.n_windows_ = prob.n_groups
         self.bootstrap_ci_ = self._bootstrap(prob, tau)
-        half_mask = mask[::2]
         try:
-            half = _LagProblem(data.x[::2], data.F_p[::2], 2.0 * h, half_mask, self.friction)
+            half = _LagProblem(data.x[::2], data.F_p[::2], 2.0 * h, mask[::2], self.friction)
             t2, c2, _ = half.solve(tau_max)
             self.M_half_ = float(t2 / c2[0])
         except (LogError, ValueError, np.linalg.LinAlgError):

@@ -18,6 +18,7 @@ Eq. (1) rearranged with the measured pressure force F_p = A_a p_a - A_b p_b - p0
 from __future__ import annotations
 
 import numpy as np
+from scipy.integrate import cumulative_trapezoid
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
@@ -258,7 +259,7 @@ class MassIdentifier(Identifier):
         force = data.F_p - stribeck(v, f.F_S_, f.F_C_, f.v_s_, f.alpha_, f.b_v_) + f.F_n_
         # trapezoid with the viscous part exact from positions: ∫ b_v v dt = b_v Δx
         force_nv = data.F_p - (stribeck(v, f.F_S_, f.F_C_, f.v_s_, f.alpha_, 0.0)) + f.F_n_
-        c = np.concatenate([[0.0], np.cumsum(0.5 * (force_nv[1:] + force_nv[:-1]) * data.Ts)])
+        c = cumulative_trapezoid(force_nv, dx=data.Ts, initial=0.0)
         del force
         ok = mask & (np.abs(v) > V_SLIDE)
         bad = np.concatenate([[0], np.cumsum(~ok)])

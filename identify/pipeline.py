@@ -26,7 +26,7 @@ from pneutune.control.plant_config import PlantConfig
 
 from .bounds import ThetaBounds, theta_bounds
 from .dataset import Dataset, load_dataset
-from .mass import MIN_SAMPLES_PER_PWM, LagMassIdentifier
+from .mass import MIN_SAMPLES_PER_PWM, LagMassIdentifier, samples_per_pwm
 from .motion import FrictionIdentifier, MassIdentifier
 from .validation import Validation, validate
 from .valves import ValveIdentifier
@@ -115,7 +115,7 @@ def _mass(data: Dataset, friction: FrictionIdentifier, fit: np.ndarray,
     if mass is not None:
         rng = (mass * (1.0 - mass_tol), mass * (1.0 + mass_tol))
         return mass, rng, f"given by the user (±{mass_tol:.0%})", None
-    if log is not None and 1.0 / (log.rig.pwm_hz * log.Ts) >= MIN_SAMPLES_PER_PWM:
+    if log is not None and samples_per_pwm(log) >= MIN_SAMPLES_PER_PWM:
         lag = _lag_mass(log, friction, log_fit, seed, notes)
         if lag is not None:
             return lag.M_, lag.ci_, (
