@@ -56,6 +56,8 @@ DEFAULT_SINES: tuple[tuple[float, int], ...] = ((0.5, 2), (1.0, 3), (2.0, 4), (3
 IDENT_SAMPLE_PERIOD: float = 5.0e-4
 
 Reference = Callable[[float], tuple[float, float, float]]
+#: A closed-loop segment's controller: ``(t_rel [s], sensors [x, p_a, p_b, p_s]) -> duties``.
+SegmentController = Callable[[float, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -67,7 +69,8 @@ class Segment:
     label : str
         Unique, human-readable name (``valve_charge:a_in:0.50``).
     kind : str
-        rest | prepare | valve_charge | valve_discharge | constant_speed | acceleration | hold.
+        rest | prepare | valve_charge | valve_discharge | constant_speed | acceleration | hold
+        (the commissioning run adds burst | brake | coast).
     duration : float
         [s].
     params : dict
@@ -76,6 +79,11 @@ class Segment:
         Fixed open-loop duties [a_in, a_out, b_in, b_out], or None for the position loop.
     reference : callable or None
         ``t_rel -> (x_r, v_r, a_r)`` for the position loop.
+    controller : callable or None
+        Factory of a closed-loop controller with its own state: called once at the start of
+        the segment, it returns a fresh :data:`SegmentController`, which gives the duties at
+        every control instant of a segment without ``reference`` (``duties`` is then unused).
+        A fresh controller per run keeps a protocol reusable.
     """
 
     label: str
@@ -84,6 +92,21 @@ class Segment:
     params: dict[str, Any] = field(default_factory=dict)
     duties: np.ndarray | None = None
     reference: Reference | None = None
+    controller: Callable[[], SegmentController] | None = None
+
+
+def mode_duties(u: float) -> np.ndarray:
+    """The four duties of a signed command ``u`` in [-1, 1] (the modes of DESIGN.md).
+
+    u > 0 opens a_in and b_out with duty u (mode 1), u < 0 opens a_out and b_in with duty -u
+    (mode 2), u = 0 closes all (mode 3).
+    """
+    d = np.zeros(4)
+    if u > 0.0:
+        d[A_IN] = d[B_OUT] = u
+    elif u < 0.0:
+        d[A_OUT] = d[B_IN] = -u
+    return d
 
 
 def position_loop(x: float, x_r: float, band: float) -> np.ndarray:
@@ -104,16 +127,11 @@ def position_loop(x: float, x_r: float, band: float) -> np.ndarray:
     ndarray
         The four duties.
     """
-    u = min(max((x_r - x) / band, -1.0), 1.0)
-    d = np.zeros(4)
-    if u > 0.0:
-        d[A_IN] = d[B_OUT] = u
-    elif u < 0.0:
-        d[A_OUT] = d[B_IN] = -u
-    return d
+    return mode_duties(min(max((x_r - x) / band, -1.0), 1.0))
 
 
-def _duties(**open_: float) -> np.ndarray:
+def valve_duties(**open_: float) -> np.ndarray:
+    """The four duties with the named valves open: ``valve_duties(a_in=0.5, b_out=1.0)``."""
     d = np.zeros(4)
     for name, u in open_.items():
         d[{"a_in": A_IN, "a_out": A_OUT, "b_in": B_IN, "b_out": B_OUT}[name]] = u
@@ -123,10 +141,10 @@ def _duties(**open_: float) -> np.ndarray:
 def _valve_block(chamber: str, duties: Sequence[float]) -> list[Segment]:
     """Charge/discharge sweep of one chamber with the piston held on the far end stop."""
     if chamber == "a":
-        prep = _duties(a_in=1.0, b_out=1.0)
+        prep = valve_duties(a_in=1.0, b_out=1.0)
         hold, fill, vent, stop = "b_out", "a_in", "a_out", "x_max"
     else:
-        prep = _duties(a_out=1.0, b_in=1.0)
+        prep = valve_duties(a_out=1.0, b_in=1.0)
         hold, fill, vent, stop = "a_out", "b_in", "b_out", "x_min"
     segs = [Segment(f"prepare:{chamber}", "prepare", 1.5,
                     {"chamber": chamber, "end_stop": stop, "open": [fill, hold]}, prep)]
@@ -139,18 +157,18 @@ def _valve_block(chamber: str, duties: Sequence[float]) -> list[Segment]:
                 f"{kind}:{valve}:{tag}", kind, t_half,
                 {"chamber": chamber, "valve": valve, "duty": u, "held_open": hold,
                  "end_stop": stop},
-                _duties(**{valve: u, hold: 1.0})))
+                valve_duties(**{valve: u, hold: 1.0})))
     # valves shut with the chamber at supply pressure: what still changes the pressure is the
     # seal leak and the constant term D of Eq. (5)
     segs.append(Segment(f"valve_charge:{fill}:hold", "valve_charge", 1.0,
                         {"chamber": chamber, "valve": fill, "duty": 1.0, "held_open": hold,
-                         "end_stop": stop}, _duties(**{fill: 1.0, hold: 1.0})))
+                         "end_stop": stop}, valve_duties(**{fill: 1.0, hold: 1.0})))
     segs.append(Segment(f"rest:{chamber}:pressurised", "rest", 2.0,
                         {"chamber": chamber, "held_open": hold, "end_stop": stop},
-                        _duties(**{hold: 1.0})))
+                        valve_duties(**{hold: 1.0})))
     segs.append(Segment(f"valve_discharge:{vent}:final", "valve_discharge", 1.0,
                         {"chamber": chamber, "valve": vent, "duty": 1.0, "held_open": hold,
-                         "end_stop": stop}, _duties(**{vent: 1.0, hold: 1.0})))
+                         "end_stop": stop}, valve_duties(**{vent: 1.0, hold: 1.0})))
     return segs
 
 
@@ -296,6 +314,7 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
     for seg in segments:
         n_seg = round(seg.duration / control_Ts) * per_control
         rec.segment(k * rig.Ts, seg.label, seg.kind, seg.params)
+        controller = seg.controller() if seg.controller is not None else None
         for j in range(n_seg):
             y = rig.read()
             rec.sensors_[k] = y
@@ -307,6 +326,8 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
                 rec.reference_[k] = (xr, vr, ar)
                 if control:
                     duties = position_loop(float(y[0]), xr, band)
+            elif control and controller is not None:
+                duties = controller(j * rig.Ts, y)
             elif control:
                 duties = seg.duties if seg.duties is not None else np.zeros(4)
             rec.duties_[k] = duties

@@ -1,4 +1,5 @@
-"""``simulate``: run the simulated rig, open loop (identification run) or closed loop."""
+"""``simulate``: run the simulated rig, open loop (identification or commissioning run) or
+closed loop."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from .cli_common import info, make_parser, print_json, run_cli
@@ -19,7 +21,7 @@ Run the simulated rig (the paper's Sec. 2 model with valve switching, stiction, 
 noisy sensors) and write the run as an MCAP log (contract pneutune.log/1) that `identify`,
 Foxglove or any MCAP reader opens.
 
-Two modes:
+Three modes:
 
   --experiment identification
       the identification run: each valve charging/discharging its chamber with the piston on
@@ -29,6 +31,22 @@ Two modes:
       the duties every rig.Ts (4 ms); the sensors are logged every --sample-period (default
       0.5 ms, a 2 kHz acquisition), fast enough to resolve the lag of the motion behind the
       pressure force that carries the moving mass (docs/identifiability.md).
+
+  --experiment commissioning
+      a second, independent protocol, as another rig's commissioning engineer would run it
+      (about 76 s): an ascending duty staircase on each valve in turn with the piston held on
+      an end stop (from ambient for a charging valve, from supply for an exhausting one),
+      constant-velocity moves at 2-80 mm/s in both directions under a PI velocity loop
+      designed from the stroke and rig.Ts alone, full-duty bursts with short braking pulses
+      and closed-valve coasting, rest. --out is required. Logged at the control rate rig.Ts
+      (--sample-period to log faster) and without /sim/truth, like a log from a rig you did
+      not build.
+
+  Which one: identification makes the log `identify` is designed around (its 0.5 ms
+  samples resolve the moving mass); commissioning checks that `identify`, and the model it
+  gives, hold up on a log of another design and at the control rate, where the moving mass
+  is not resolved (`identify --mass`, or log it with --sample-period 0.0005). Either runs
+  on any --plant.
 
   --controller C.yaml --scenario S
       closed loop: the controller of C.yaml (contract 4) tracks a scenario; prints E_p and
@@ -46,6 +64,7 @@ EPILOG = """\
 examples:
   simulate --experiment identification --seed 3 --out /tmp/r.mcap
   simulate --experiment identification --sample-period 0.004 --out /tmp/r4ms.mcap
+  simulate --experiment commissioning --plant plant.yaml --seed 5 --out /tmp/c.mcap
   simulate --controller data/controller-paper.yaml --scenario table1
   simulate --controller data/controller-paper.yaml --scenario all --json
   simulate --controller reports/tune/controller.yaml --scenario sine-0.5hz --out run.mcap \\
@@ -73,37 +92,46 @@ def _plant_meta(plant: str | None) -> dict[str, str]:
     return {"plant": plant, "plant_sha256": _sha256(plant)}
 
 
-def _identification(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
+def _experiment(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
+    from .commissioning_run import simulate_commissioning
     from .identification_run import IDENT_SAMPLE_PERIOD, simulate_identification
 
+    name = args.experiment
     if args.out is None:
-        raise ExperimentError("--experiment identification needs --out F.mcap")
-    bar = tqdm(total=1, unit="sample", desc="identification run", disable=None, leave=False)
+        raise ExperimentError(f"--experiment {name} needs --out F.mcap")
+    bar = tqdm(total=1, unit="sample", desc=f"{name} run", disable=None, leave=False)
 
     def progress(done: int, total: int) -> None:
         bar.total = total
         bar.n = done
         bar.refresh()
 
-    period = IDENT_SAMPLE_PERIOD if args.sample_period is None else args.sample_period
-    rec = simulate_identification(plant_cfg, seed=seed, progress=progress,
-                                  sample_period=period)
+    if name == "identification":
+        period = IDENT_SAMPLE_PERIOD if args.sample_period is None else args.sample_period
+        rec = simulate_identification(plant_cfg, seed=seed, progress=progress,
+                                      sample_period=period)
+    else:
+        rec = simulate_commissioning(plant_cfg, seed=seed, progress=progress,
+                                     sample_period=args.sample_period)
     bar.close()
-    run_meta = {"seed": str(seed), "experiment": "identification", **_plant_meta(args.plant)}
+    run_meta = {"seed": str(seed), "experiment": name, **_plant_meta(args.plant)}
     rec.save(args.out, rig=plant_cfg.rig_metadata(), run=run_meta)
     size = os.path.getsize(args.out)
+    has_reference = rec.reference_ is not None and bool(np.isfinite(rec.reference_).any())
+    topics = ["/rig/sensors", "/rig/valves"]
+    topics += ["/control/reference"] if has_reference else []
+    topics += ["/experiment/segment"]
+    topics += ["/sim/truth"] if rec.truth_ is not None else []
     summary = {
-        "out": args.out, "experiment": "identification", "seed": seed,
+        "out": args.out, "experiment": name, "seed": seed,
         "duration_s": rec.n * rec.Ts, "samples": rec.n, "sample_period": rec.Ts,
-        "segments": len(rec.segments_),
-        "topics": ["/rig/sensors", "/rig/valves", "/control/reference", "/experiment/segment",
-                   "/sim/truth"],
+        "segments": len(rec.segments_), "topics": topics,
         "bytes": size, "sha256": _sha256(args.out),
     }
     if args.json:
         print_json(summary)
     else:
-        info(f"wrote {args.out}: identification run, {summary['duration_s']:.1f} s, "
+        info(f"wrote {args.out}: {name} run, {summary['duration_s']:.1f} s, "
              f"{rec.n} samples every {rec.Ts * 1e3:g} ms, {len(rec.segments_)} segments, "
              f"{size / 1e6:.2f} MB, seed {seed}")
         info("topics: " + ", ".join(summary["topics"]))
@@ -179,8 +207,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``simulate``."""
     parser = make_parser("simulate", DESCRIPTION, EPILOG)
     mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--experiment", choices=["identification"],
-                      help="open-loop experiment to run")
+    mode.add_argument("--experiment", choices=["identification", "commissioning"],
+                      help="excitation protocol to run (see above)")
     mode.add_argument("--controller", metavar="C.yaml", help="controller.yaml for a closed loop")
     parser.add_argument("--scenario", metavar="S", help="scenario name, table1 or all")
     parser.add_argument("--out", metavar="F.mcap", help="the log to write")
@@ -188,8 +216,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, metavar="N",
                         help="sensor-noise seed (default: sim.seed of the plant, 1)")
     parser.add_argument("--sample-period", type=float, metavar="S",
-                        help="identification run: sensor logging period [s], dividing rig.Ts "
-                             "(default 0.0005)")
+                        help="--experiment: sensor logging period [s], dividing rig.Ts "
+                             "(default 0.0005 for identification, rig.Ts for commissioning)")
     parser.add_argument("--plots", metavar="DIR", help="write PNG figures (closed loop) to DIR")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (prose goes to stderr)")
@@ -204,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.scenario or args.plots:
             raise ExperimentError("--scenario and --plots go with --controller, "
                                   "not --experiment")
-        return _identification(args, plant_cfg, seed)
+        return _experiment(args, plant_cfg, seed)
     return _closed_loop(args, plant_cfg, seed)
 
 
