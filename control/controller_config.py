@@ -211,6 +211,10 @@ class PidConfig(_Strict):
     i_max: float = Field(1.0e-3, ge=0.0, le=1.0, description="Clamp of the integral of e1 [m s]")
 
 
+def _list_to_tuple(value: Any) -> Any:
+    return tuple(value) if isinstance(value, list) else value
+
+
 class ProvenanceConfig(_Strict):
     """Where a tuned config came from (all optional)."""
 
@@ -222,6 +226,9 @@ class ProvenanceConfig(_Strict):
     version: str | None = Field(None, description="pneutune version that wrote the file")
     seed: int | None = Field(None, ge=0, description="Added by pneutune: seed of the tune study "
                              "(plant draws, sensor noise, samplers)")
+    notes: Annotated[tuple[str, ...] | None, BeforeValidator(_list_to_tuple)] = Field(
+        None, description="Added by pneutune: what tune had to assume or change, e.g. ranges of "
+        "the model narrowed because no controller tracked plants at their ends")
 
 
 class ControllerConfig(_Strict):

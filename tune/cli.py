@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import hashlib
 import os
@@ -24,6 +25,7 @@ from pneutune.control.model_config import load_model
 from pneutune.control.scenarios import GROUPS, SCENARIOS
 from pneutune.control.yamlio import write_yaml
 
+from .feasibility import InfeasibleModelError, check_feasibility
 from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError, TuneObjective
 from .report import PAPER_CONTROLLER, compare, write_report
 from .space import controller_from_params, search_space
@@ -33,6 +35,7 @@ from .study import (
     default_study_name,
     finished,
     run_study,
+    storage_scheme,
 )
 from .study import _redact as redact
 
@@ -108,9 +111,23 @@ def _scenarios(value: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(names))
 
 
-def provenance(model_sha256: str, study: str, trial: int, value: float, seed: int
-               ) -> dict[str, Any]:
-    """The provenance block (``seed`` only if this pneutune's contract 4 has that key)."""
+def failure_summary(study: Any) -> str:
+    """Why the trials of a study failed, most frequent first (``user_attrs["failure"]``)."""
+    reasons: dict[str, int] = {}
+    for t in study.get_trials(deepcopy=False):
+        why = t.user_attrs.get("failure")
+        if why:
+            reasons[why] = reasons.get(why, 0) + 1
+    if not reasons:
+        return "no failure recorded (every trial was pruned by the median rule)"
+    top = sorted(reasons.items(), key=lambda kv: -kv[1])[:3]
+    return "; ".join(f"{n}x {why}" for why, n in top)
+
+
+def provenance(model_sha256: str, study: str, trial: int, value: float, seed: int,
+               notes: Sequence[str] = ()) -> dict[str, Any]:
+    """The provenance block (``seed`` and ``notes`` only if this pneutune's contract 4 has
+    those keys)."""
     prov: dict[str, Any] = {
         "model_sha256": model_sha256, "study": study, "trial": int(trial),
         "objective": float(value),
@@ -119,6 +136,8 @@ def provenance(model_sha256: str, study: str, trial: int, value: float, seed: in
     }
     if "seed" in ProvenanceConfig.model_fields:
         prov["seed"] = int(seed)
+    if notes and "notes" in ProvenanceConfig.model_fields:
+        prov["notes"] = list(notes)
     return prov
 
 
@@ -180,11 +199,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  duration=args.duration)
     out = Path(args.out)
     storage = args.storage if args.storage else str(out / DEFAULT_JOURNAL)
+    storage_scheme(storage)  # an unknown scheme is bad input before any simulation
+    try:
+        feas = check_feasibility(model, args.seed, settings,
+                                 progress=lambda line: info(f"  {line}"))
+    except InfeasibleModelError as exc:
+        raise ConfigError(str(model_path), "", str(exc)) from None
+    settings = dataclasses.replace(settings, box=feas.box)
     study_name = args.study or default_study_name(model_sha, args.seed)
     jobs = args.jobs if args.jobs is not None else (
         min(_cpus(), settings.n_draws) if args.workers == 1 else 1)
     spec = StudySpec(storage, study_name, args.seed, args.trials, args.workers, model_sha,
-                     settings, jobs)
+                     settings, jobs,
+                     extra_first=None if feas.paper_failure is None else feas.reference_params)
 
     bar = tqdm(total=args.trials, desc="tune", unit="trial", file=sys.stderr, disable=None,
                leave=False)
@@ -202,13 +229,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     counts = summary.counts_after
     complete = [t for t in study.get_trials(deepcopy=False) if t.state.name == "COMPLETE"]
     if not complete:
-        sys.stderr.write(f"error: study {study_name!r}: no trial completed "
-                         f"({counts['PRUNED']} pruned, {counts['FAIL']} failed); every "
-                         "controller tried was unstable or pruned on this model\n")
-        return 1
+        raise ConfigError(str(model_path), "", f"study {study_name!r}: no trial completed "
+                          f"({counts['PRUNED']} pruned, {counts['FAIL']} failed): "
+                          f"{failure_summary(study)}; check the model's ranges and fit")
     best = study.best_trial
 
-    prov = provenance(model_sha, study_name, best.number, float(best.value), args.seed)
+    prov = provenance(model_sha, study_name, best.number, float(best.value), args.seed,
+                      feas.notes())
     tuned = controller_from_params(model, best.params, prov)
     paper_path = PAPER_CONTROLLER if PAPER_CONTROLLER.is_file() else Path(
         "data/controller-paper.yaml")
@@ -240,6 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "paper_path": os.path.relpath(paper_path) if paper_path.is_absolute() else str(
             paper_path),
         "plant_nominal": str(nominal_path), "plant_worst": str(worst_path),
+        "feasibility": feas.notes(),
     }
     report_path = write_report(out, objective, study, best, tuned, paper, comp, report_info)
     # the file written loads back equal (contract 4 round trip)
@@ -259,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    "leftovers_failed": summary.leftovers_failed},
         "wall_s": summary.wall_s,
         "best": {"trial": best.number, "objective": best.value, "params": best.params},
+        "narrowed": [list(b) for b in feas.box],
+        "feasibility": feas.notes(),
         **comp.summary(),
     }
     if args.json:

@@ -98,6 +98,10 @@ class ObjectiveSettings:
     end_stop_weight : float
         Penalty per second within 0.2 mm of a stroke end, plus the same once for any contact
         [1/s].
+    box : tuple of (str, float, float)
+        Narrower ranges of plant coordinates, ``(key, lo, hi)``
+        (:func:`pneutune.tune.plants.uncertainty_box`); set by the feasibility check
+        (:mod:`pneutune.tune.feasibility`), empty when the model's box is used as it is.
     """
 
     scenarios: tuple[str, ...] = DEFAULT_SCENARIOS
@@ -110,6 +114,7 @@ class ObjectiveSettings:
     p_low_fraction: float = 0.5
     pressure_weight: float = 1.0
     end_stop_weight: float = 2.0
+    box: tuple[tuple[str, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         for name in self.scenarios:
@@ -125,11 +130,23 @@ class ObjectiveSettings:
             raise TuneError(f"abort_error > 0 must hold, got {self.abort_error}")
         if self.duration is not None and not self.duration > 0.0:
             raise TuneError(f"duration > 0 must hold, got {self.duration}")
+        for key, lo, hi in self.box:
+            if not lo <= hi:
+                raise TuneError(f"box {key}: lo <= hi must hold, got lo={lo}, hi={hi}")
+
+    def box_dict(self) -> dict[str, tuple[float, float]]:
+        """``box`` as key -> (lo, hi)."""
+        return {key: (lo, hi) for key, lo, hi in self.box}
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain data (JSON-able)."""
+        """Plain data (JSON-able); ``box`` only when set (studies made before it compare
+        equal)."""
         out = dataclasses.asdict(self)
         out["scenarios"] = list(self.scenarios)
+        if self.box:
+            out["box"] = [list(b) for b in self.box]
+        else:
+            del out["box"]
         return out
 
     @classmethod
@@ -137,6 +154,7 @@ class ObjectiveSettings:
         """Inverse of :meth:`to_dict`."""
         data = dict(data)
         data["scenarios"] = tuple(data["scenarios"])
+        data["box"] = tuple((str(k), float(lo), float(hi)) for k, lo, hi in data.get("box", ()))
         return cls(**data)
 
 
@@ -295,7 +313,8 @@ class TuneObjective:
         self.seed = int(seed)
         self.settings = settings if settings is not None else ObjectiveSettings()
         self.space: SearchSpace = search_space(model)
-        self.draws: tuple[PlantDraw, ...] = draw_plants(model, self.settings.n_draws, self.seed)
+        self.draws: tuple[PlantDraw, ...] = draw_plants(model, self.settings.n_draws, self.seed,
+                                                        self.settings.box_dict())
         scen = [SCENARIOS[n] for n in self.settings.scenarios]
         if self.settings.duration is not None:
             scen = [dataclasses.replace(s, duration=self.settings.duration) for s in scen]

@@ -31,6 +31,10 @@ Where an intersection is empty (an identified range outside the projection box),
 range is used. A model without ``friction.ranges`` or ``mass_range`` uses the θ box alone (and
 F_S scaled with F_C, v_s and alpha nominal).
 
+``box`` overrides narrow coordinates further (key -> (lo, hi), intersected with the box above,
+the nominal value always kept inside): :mod:`pneutune.tune.feasibility` narrows the ranges a
+log does not rule out but no controller can track.
+
 Each draw carries its own sensor-noise seed in ``sim.seed``: draw 0 uses the study seed itself
 (so ``simulate --plant plant-nominal.yaml`` or ``--seed S`` repeats the objective's nominal runs),
 draw k the first word of ``SeedSequence([seed, k])``.
@@ -38,7 +42,8 @@ draw k the first word of ``SeedSequence([seed, k])``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -107,16 +112,26 @@ def _meet(box: tuple[float, float], rng: tuple[float, float] | None) -> tuple[fl
     return (lo, hi) if lo <= hi else (float(rng[0]), float(rng[1]))
 
 
-def uncertainty_box(model: ModelConfig) -> tuple[Coordinate, ...]:
+def uncertainty_box(model: ModelConfig,
+                    box: Mapping[str, tuple[float, float]] | None = None
+                    ) -> tuple[Coordinate, ...]:
     """The uncertain coordinates of ``model`` and their boxes (module docstring).
 
     Parameters
     ----------
     model : ModelConfig
+    box : mapping, optional
+        Narrower ranges for some coordinates (key -> (lo, hi)); each is intersected with the
+        model's range and widened to keep the nominal value.
 
     Returns
     -------
     tuple of Coordinate
+
+    Raises
+    ------
+    KeyError
+        A key of ``box`` that is not a coordinate.
     """
     th = model.theta
     f = model.friction
@@ -138,7 +153,20 @@ def uncertainty_box(model: ModelConfig) -> tuple[Coordinate, ...]:
     for name, v in zip(VALVES, model.valves.ordered(), strict=True):
         coords.append(Coordinate(f"valves.{name}.C", v.C_min, v.C_max, v.C, "low"))
         coords.append(Coordinate(f"valves.{name}.b", v.b_min, v.b_max, v.b, "high"))
-    return tuple(coords)
+    if not box:
+        return tuple(coords)
+    unknown = sorted(set(box) - {c.key for c in coords})
+    if unknown:
+        raise KeyError(f"box overrides for unknown coordinates {unknown}; expected keys of "
+                       f"{[c.key for c in coords]}")
+    out = []
+    for c in coords:
+        if c.key in box:
+            lo, hi = box[c.key]
+            c = replace(c, low=min(max(c.low, lo), c.nominal), high=max(min(c.high, hi),
+                                                                         c.nominal))
+        out.append(c)
+    return tuple(out)
 
 
 def _nominal_dict(model: ModelConfig, seed: int) -> dict[str, Any]:
@@ -201,8 +229,26 @@ def draw_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
 
 
-def _plant_from_values(model: ModelConfig, values: dict[str, float], noise_seed: int,
-                       label: str) -> PlantConfig:
+def plant_from_values(model: ModelConfig, values: dict[str, float], noise_seed: int,
+                      label: str) -> PlantConfig:
+    """The nominal plant of ``model`` with some coordinates set (key path -> value).
+
+    F_S follows F_C in proportion when it is not given, and is kept >= F_C.
+
+    Parameters
+    ----------
+    model : ModelConfig
+    values : dict
+        Coordinate values (:func:`uncertainty_box` keys), SI units.
+    noise_seed : int
+        ``sim.seed`` of the plant.
+    label : str
+        Name for error messages.
+
+    Returns
+    -------
+    PlantConfig
+    """
     data = nominal_plant(model, noise_seed).to_dict()
     for key, value in values.items():
         _set(data, key, value)
@@ -213,7 +259,8 @@ def _plant_from_values(model: ModelConfig, values: dict[str, float], noise_seed:
     return validate_model(PlantConfig, data, f"<plant draw {label}>")
 
 
-def draw_plants(model: ModelConfig, n_draws: int, seed: int) -> tuple[PlantDraw, ...]:
+def draw_plants(model: ModelConfig, n_draws: int, seed: int,
+                box: Mapping[str, tuple[float, float]] | None = None) -> tuple[PlantDraw, ...]:
     """``n_draws`` plants from the model's uncertainty (module docstring), deterministic in seed.
 
     Parameters
@@ -223,6 +270,8 @@ def draw_plants(model: ModelConfig, n_draws: int, seed: int) -> tuple[PlantDraw,
         Number of plants, >= 1 (1: the nominal only; 3: nominal and the two corners).
     seed : int
         Seed of the Latin hypercube and of the sensor noise (>= 0).
+    box : mapping, optional
+        Narrower ranges (:func:`uncertainty_box`).
 
     Returns
     -------
@@ -230,7 +279,7 @@ def draw_plants(model: ModelConfig, n_draws: int, seed: int) -> tuple[PlantDraw,
     """
     if n_draws < 1:
         raise ValueError(f"n_draws >= 1 must hold, got {n_draws}")
-    coords = uncertainty_box(model)
+    coords = uncertainty_box(model, box)
     draws = [PlantDraw(0, "nominal", nominal_plant(model, draw_seed(seed, 0)),
                        {c.key: c.nominal for c in coords})]
 
@@ -258,10 +307,10 @@ def draw_plants(model: ModelConfig, n_draws: int, seed: int) -> tuple[PlantDraw,
             specs.append((f"lhs-{k + 1}", {c.key: c.low + unit[k, j] * (c.high - c.low)
                                            for j, c in enumerate(coords)}))
     for i, (label, values) in enumerate(specs, start=1):
-        plant = _plant_from_values(model, values, draw_seed(seed, i), label)
+        plant = plant_from_values(model, values, draw_seed(seed, i), label)
         draws.append(PlantDraw(i, label, plant, values))
     return tuple(draws)
 
 
 __all__ = ["Coordinate", "PlantDraw", "draw_plants", "draw_seed", "nominal_plant",
-           "uncertainty_box"]
+           "plant_from_values", "uncertainty_box"]

@@ -156,6 +156,17 @@ def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list
     return lines
 
 
+def _feasibility(notes: list[str]) -> list[str]:
+    """The section on what the feasibility check changed (nothing when the box was kept)."""
+    if not notes:
+        return []
+    return ["## What tune had to change", "",
+            "Before the study, the reference controller was run on every plant draw "
+            "(`pneutune.tune.feasibility`). Where a draw defeated it, the ranges that made the "
+            "draw infeasible were narrowed toward the model's nominal values:", "",
+            *[f"- {n}" for n in notes], ""]
+
+
 def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
            tuned: ControllerConfig, paper: ControllerConfig, comp: Comparison,
            imp: dict[str, float] | None, info: dict[str, Any]) -> str:
@@ -185,6 +196,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         "end-stop contact); 1 = the paper's Table 1 on every scenario. docs/tuning.md.",
         f"- controller: `{info['controller']}`; baseline: `{info['paper_path']}`",
         "",
+        *_feasibility(info.get("feasibility") or []),
         "## Table 1 on the nominal plant",
         "",
         "Simulated on the model's nominal plant (draw 0, sensor-noise seed "

@@ -106,6 +106,23 @@ def local_file(storage: str) -> Path | None:
     return None
 
 
+def storage_scheme(storage: str) -> str:
+    """The scheme of an RDB URL (``sqlite``, ``postgresql``, ...), ``journal`` for a path.
+
+    Raises
+    ------
+    StorageError
+        An unknown scheme.
+    """
+    if not is_url(storage):
+        return "journal"
+    scheme = storage.split("://", 1)[0].split("+", 1)[0].lower()
+    if scheme not in _RDB_SCHEMES:
+        raise StorageError(f"--storage {storage!r}: unknown scheme {scheme!r}; expected a "
+                           f"journal file path, sqlite:///FILE or postgresql://USER@HOST:PORT/DB")
+    return scheme
+
+
 def open_storage(storage: str) -> optuna.storages.BaseStorage:
     """Open a storage (module docstring).
 
@@ -131,10 +148,7 @@ def open_storage(storage: str) -> optuna.storages.BaseStorage:
         except OSError as exc:
             raise StorageError(f"{storage}: cannot open the journal file ({exc})") from None
         return optuna.storages.JournalStorage(backend)
-    scheme = storage.split("://", 1)[0].split("+", 1)[0].lower()
-    if scheme not in _RDB_SCHEMES:
-        raise StorageError(f"--storage {storage!r}: unknown scheme {scheme!r}; expected a "
-                           f"journal file path, sqlite:///FILE or postgresql://USER@HOST:PORT/DB")
+    scheme = storage_scheme(storage)
     kwargs: dict[str, Any] = {}
     if scheme == "sqlite":
         file = local_file(storage)
@@ -298,6 +312,10 @@ class StudySpec:
     jobs : int
         Processes per worker running a trial's plant draws in parallel (the values do not
         depend on it; :class:`~pneutune.tune.objective.TuneObjective`).
+    extra_first : dict or None
+        Parameters enqueued after the paper's as the second trial of a new study (the
+        reference controller of :mod:`pneutune.tune.feasibility` when the paper's gains do not
+        track the nominal plant).
     """
 
     storage: str
@@ -308,6 +326,7 @@ class StudySpec:
     model_sha256: str
     settings: ObjectiveSettings = field(default_factory=ObjectiveSettings)
     jobs: int = 1
+    extra_first: dict[str, float] | None = None
 
     def meta(self, model: ModelConfig) -> dict[str, Any]:
         """What the study is created with (stored, then checked on resume)."""
@@ -320,7 +339,7 @@ class StudySpec:
         return {"storage": self.storage, "study_name": self.study_name, "seed": self.seed,
                 "n_trials": self.n_trials, "workers": self.workers,
                 "model_sha256": self.model_sha256, "settings": self.settings.to_dict(),
-                "jobs": self.jobs}
+                "jobs": self.jobs, "extra_first": self.extra_first}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> StudySpec:
@@ -342,7 +361,8 @@ def _normalise(obj: Any) -> Any:
 def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
     """Create the study, or load it and check that it was made for this model, seed and settings.
 
-    A new study gets its metadata and, as its first trial, the paper's parameters.
+    A new study gets its metadata and, as its first trial, the paper's parameters (then
+    ``spec.extra_first``, if any).
 
     Raises
     ------
@@ -360,6 +380,8 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
         study.set_user_attr(META_KEY, want)
         if not study.get_trials(deepcopy=False):
             study.enqueue_trial(search_space(model).paper_params(), skip_if_exists=True)
+            if spec.extra_first is not None:
+                study.enqueue_trial(dict(spec.extra_first), skip_if_exists=True)
         return study
     have = _normalise(have)
     diffs = [k for k in want if have.get(k) != want[k]]
@@ -389,7 +411,8 @@ def _quiet_optuna() -> None:
 
 
 def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
-         on_trial: Callable[[], None] | None = None, parent_pid: int | None = None) -> int:
+         on_trial: Callable[[], None] | None = None, parent_pid: int | None = None,
+         only_waiting: bool = False) -> int:
     """Run trials on the study until it holds ``spec.n_trials`` finished ones.
 
     Parameters
@@ -402,6 +425,8 @@ def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
         Called after each trial this worker finishes (progress).
     parent_pid : int, optional
         Stop when the parent process is gone.
+    only_waiting : bool
+        Run only the enqueued (WAITING) trials, then return.
 
     Returns
     -------
@@ -430,6 +455,8 @@ def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
                 optuna.storages.fail_stale_trials(study)
             counts = trial_counts(study)
             if finished(counts) + counts["RUNNING"] >= spec.n_trials:
+                break
+            if only_waiting and counts["WAITING"] == 0:
                 break
             if objective is None:  # only now: a resumed, finished study starts no processes
                 objective = TuneObjective(model, spec.seed, spec.settings, jobs=spec.jobs)
@@ -532,6 +559,9 @@ def run_study(spec: StudySpec, model: ModelConfig,
 
 def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
                    progress: Callable[[int, int], None] | None, poll_s: float) -> None:
+    # The enqueued trials (the paper's gains) run here first: workers popping the same waiting
+    # trial race on SQLite ("Cannot tell a COMPLETE trial", optuna/optuna#4621).
+    work(spec, model, worker=0, only_waiting=True)
     ctx = multiprocessing.get_context("spawn")
     procs = [ctx.Process(target=_worker_main, name=f"tune-worker-{i}",
                          args=(spec.to_dict(), model.to_dict(), i, os.getpid()))
@@ -557,4 +587,4 @@ def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
 __all__ = ["DEFAULT_JOURNAL", "RunSummary", "StorageError", "StudyMismatchError", "StudySpec",
            "WorkerError", "clear_stale_journal_lock", "default_study_name", "fail_leftover_trials",
            "finished", "local_file", "local_lock", "open_storage", "prepare_study",
-           "repair_journal", "run_study", "sampler_seed", "trial_counts", "work"]
+           "repair_journal", "run_study", "sampler_seed", "storage_scheme", "trial_counts", "work"]
