@@ -18,6 +18,10 @@ RIG_KEYS: tuple[str, ...] = (
     "A_a", "A_b", "x_min", "x_max", "V0a", "V0b", "p0", "p_s", "T0", "n", "R", "Ts",
     "pwm_hz", "pwm_update",
 )
+#: Optional keys of the ``rig`` metadata record of a run log: hints a commissioning engineer
+#: may give that no log can measure well. ``mass``: the total moving mass [kg] (datasheet plus
+#: payload), from which ``identify`` takes its prior range when the log cannot resolve it.
+RIG_HINT_KEYS: tuple[str, ...] = ("mass",)
 #: Allowed values of ``rig.pwm_update``.
 PWM_UPDATE_MODES: tuple[str, str] = ("immediate", "latched")
 

@@ -196,6 +196,10 @@ class ModelConfig(_Strict):
     fit: FitBlock
     leak: LeakBlock = LeakBlock()
     sensors: SensorsBlock | None = None
+    basis: dict[str, str] | None = Field(
+        None, description="Added: where each range of the plant coordinates came from, keyed "
+        "like tune's plant draws (mass, friction.F_S, valves.a_in.C, ...): 'statistics: ...', "
+        "'data bound: ...', 'prior: ...', and what the cross-check against the log changed")
     notes: Annotated[tuple[str, ...], BeforeValidator(_to_tuple)] = Field(
         (), description="Added: what was not identifiable, and why")
 

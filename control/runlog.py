@@ -29,7 +29,9 @@ Strictness
     field, carries a field the schema does not know, or holds a value of the wrong type
     (:class:`LogSchemaError`). Topics outside the contract (a rig logger may record more) are
     not decoded; their names are listed in :attr:`RunLog.ignored_topics`. A ``rig`` record with
-    a key outside ``RIG_KEYS`` is rejected; the ``run`` record may carry further keys.
+    a key outside ``RIG_KEYS`` and the optional hints ``RIG_HINT_KEYS`` (``mass``, a positive
+    decimal, read into :attr:`RunLog.rig_hints`) is rejected; the ``run`` record may carry
+    further keys.
 
 Integrity
     The writer enables every CRC the format has (chunk, data section, summary). The reader scans
@@ -67,7 +69,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from . import __version__
 from .atomic import atomic_open
-from .constants import LOG_SCHEMA, PWM_UPDATE_MODES, RIG_KEYS
+from .constants import LOG_SCHEMA, PWM_UPDATE_MODES, RIG_HINT_KEYS, RIG_KEYS
 from .errors import (
     EmptyLogError,
     LogError,
@@ -361,10 +363,10 @@ def _rig_metadata(rig: Mapping[str, Any]) -> dict[str, str]:
     if not isinstance(rig, Mapping):
         raise TypeError(f"rig must be a mapping, got {type(rig).__name__}")
     missing = [k for k in RIG_KEYS if k not in rig]
-    unknown = sorted(str(k) for k in rig if k not in RIG_KEYS)
+    unknown = sorted(str(k) for k in rig if k not in RIG_KEYS and k not in RIG_HINT_KEYS)
     if missing or unknown:
         raise ValueError(
-            "rig must hold exactly the keys of RIG_KEYS"
+            "rig must hold exactly the keys of RIG_KEYS (and optionally RIG_HINT_KEYS)"
             + (f"; missing: {', '.join(missing)}" if missing else "")
             + (f"; unknown: {', '.join(unknown)}" if unknown else "")
         )
@@ -378,6 +380,12 @@ def _rig_metadata(rig: Mapping[str, Any]) -> dict[str, str]:
     if mode not in PWM_UPDATE_MODES:
         raise ValueError(f"rig.pwm_update must be one of {PWM_UPDATE_MODES}, got {mode!r}")
     out["pwm_update"] = str(mode)
+    for key in RIG_HINT_KEYS:
+        if key in rig:
+            value = rig[key]
+            if not _is_real(value) or not (math.isfinite(float(value)) and float(value) > 0):
+                raise ValueError(f"rig.{key} must be a positive finite number, got {value!r}")
+            out[key] = repr(float(value))
     return out
 
 
@@ -717,9 +725,12 @@ class RunLog:
         ``theta_hat`` expanded to ``theta_hat_0`` .. ``theta_hat_5``; numbers are float64,
         strings are strings, ``/experiment/segment`` ``params`` are dicts.
     rig : dict[str, float | str]
-        The ``rig`` metadata record; numbers as floats, ``pwm_update`` as a string.
+        The ``rig`` metadata record (the keys of ``RIG_KEYS``); numbers as floats,
+        ``pwm_update`` as a string.
     run : dict[str, str]
         The ``run`` metadata record.
+    rig_hints : dict[str, float]
+        The optional hints of the ``rig`` record (``RIG_HINT_KEYS``) that the log carries.
     ignored_topics : tuple[str, ...]
         Topics with messages that are not part of contract 1 (not decoded).
     sha256 : str
@@ -732,6 +743,7 @@ class RunLog:
     run: dict[str, str]
     ignored_topics: tuple[str, ...] = ()
     sha256: str = ""
+    rig_hints: dict[str, float] = field(default_factory=dict)
 
     def has(self, topic: str) -> bool:
         """Return True if ``topic`` has at least one message in the log."""
@@ -989,6 +1001,21 @@ def _scan_file(file: str, data: bytes) -> _Scan:
         ) from exc
 
 
+def _parse_rig_hints(file: str, records: list[Metadata]) -> dict[str, float]:
+    """The optional ``rig`` hints (``RIG_HINT_KEYS``), positive finite decimals."""
+    raw = next(m for m in records if m.name == "rig").metadata
+    out = {}
+    for key in RIG_HINT_KEYS:
+        if key in raw:
+            text = raw[key]
+            value = float(text) if _DECIMAL.fullmatch(text) else math.nan
+            if not (math.isfinite(value) and value > 0.0):
+                raise LogSchemaError(file, f"'rig' metadata key {key} = {text!r} is not a "
+                                     "positive decimal number")
+            out[key] = value
+    return out
+
+
 def _parse_rig(file: str, records: list[Metadata]) -> dict[str, float | str]:
     rigs = [m for m in records if m.name == "rig"]
     if not rigs:
@@ -1002,7 +1029,7 @@ def _parse_rig(file: str, records: list[Metadata]) -> dict[str, float | str]:
             file, f"'rig' metadata record lacks key {missing[0]}"
             + (f" (and {', '.join(missing[1:])})" if len(missing) > 1 else "")
         )
-    unknown = sorted(k for k in raw if k not in RIG_KEYS)
+    unknown = sorted(k for k in raw if k not in RIG_KEYS and k not in RIG_HINT_KEYS)
     if unknown:
         raise LogSchemaError(file, f"'rig' metadata record has unknown key(s) {', '.join(unknown)}")
     out: dict[str, float | str] = {}
@@ -1350,4 +1377,5 @@ def read_run_log(
         run=run,
         ignored_topics=ignored,
         sha256=hashlib.sha256(data).hexdigest(),
+        rig_hints=_parse_rig_hints(file, scan.metadata),
     )

@@ -210,3 +210,46 @@ def next_event(p: np.ndarray, s: np.ndarray, t: float, t_end: float) -> float:
             if t_p < t_next:
                 t_next = t_p
     return t_next
+
+
+@njit(cache=True)
+def open_fractions(p: np.ndarray, s: np.ndarray, duties: np.ndarray, t0: float, Ts: float,
+                   out: np.ndarray) -> None:
+    """Fraction of each sample interval that each valve is open, for duties written per sample.
+
+    The valves alone, switched exactly as in the plant (:func:`set_duties`, :func:`next_event`,
+    :func:`process_events`): the duties ``duties[k]`` are written at ``t0 + k Ts`` and hold until
+    the next sample. This is the valve part of :func:`pneutune.control.plant.advance` without
+    the chamber and motion dynamics, for identification from a log whose duties are known.
+
+    Parameters
+    ----------
+    p : ndarray
+        Packed plant parameters (only the PWM and valve timing slots are read).
+    s : ndarray
+        A plant state (its valve slots are used and updated; start from
+        :func:`pneutune.control.plant.initial_state`).
+    duties : ndarray, (N, 4)
+        Commanded duties per sample.
+    t0 : float
+        Time of the first sample on the PWM carrier's clock (the carrier starts at 0) [s].
+    Ts : float
+        Sampling period [s].
+    out : ndarray, (N, 4)
+        Open fraction of ``[t0 + k Ts, t0 + (k + 1) Ts)`` per valve, 0..1.
+    """
+    n = duties.shape[0]
+    for k in range(n):
+        t = t0 + k * Ts
+        t_end = t0 + (k + 1) * Ts
+        for i in range(4):
+            out[k, i] = 0.0
+        set_duties(p, s, t, duties[k])
+        while t < t_end - EPS_T:
+            t_next = next_event(p, s, t, t_end)
+            for i in range(4):
+                out[k, i] += s[S_OPEN + i] * (t_next - t)
+            t = t_next
+            process_events(p, s, t)
+        for i in range(4):
+            out[k, i] /= Ts

@@ -42,12 +42,13 @@ from pneutune.control.closed_loop import (
 )
 from pneutune.control.controller_config import ControllerConfig, pack
 from pneutune.control.errors import PneutuneError
+from pneutune.control.model_box import Coordinate, plant_from_values, uncertainty_box
 from pneutune.control.model_config import ModelConfig
 from pneutune.control.plant_config import PlantConfig
 from pneutune.control.scenarios import Scenario
 
 from .objective import Evaluation, ObjectiveSettings, TuneObjective
-from .plants import Coordinate, PlantDraw, plant_from_values, uncertainty_box
+from .plants import PlantDraw
 from .space import controller_from_params, search_space
 
 #: Controllers tried on the nominal plant when the paper's gains fail it.
