@@ -6,7 +6,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pneutune.control.cli_common import info, make_parser, print_json, run_cli
-from pneutune.control.errors import ExperimentError
 from pneutune.control.model_config import save_model
 
 DESCRIPTION = """\
@@ -16,9 +15,17 @@ friction, the smooth friction model, the moving mass, the constant disturbance t
 bounds θ_min..θ_max of the DARC's θ = [M, F_n, b_v, A_f, D_an, D_bn]. The model is then
 simulated on the held-out part of the log (the end of every 10 s) and its NRMSE reported.
 
-Works on the identification run (simulate --experiment identification, or the same protocol
-on a rig) and on ordinary closed-loop logs: it uses only /rig/sensors, /rig/valves and the rig
-metadata, never /sim/truth or segment labels.
+Works on any honest log: the identification run (simulate --experiment identification, or the
+same protocol on a rig), another protocol (simulate --experiment commissioning shows one), and
+ordinary closed-loop logs at the control rate (what deploy --log writes). It uses only
+/rig/sensors, /rig/valves and the rig metadata, never /sim/truth or segment labels. The valves'
+opening is computed sample by sample from their fitted delays and the PWM carrier, so duties
+that change every sample are no obstacle; friction comes from Eq. (1) integrated over sliding
+windows; stick and break-away events bound the stiction force from both sides.
+
+Every range in model.yaml has its basis (statistics, data bound or prior), and every range end
+that tune would sample and that is not a statistical fit is replayed on the held-out log: an end
+the log rules out (its NRMSE over 5 times the best fit's) is moved in, and the report says so.
 
 Writes DIR/model.yaml (contract pneutune.model/1, atomically), DIR/report.md with a plot of
 each fit, and prints a summary.
@@ -31,8 +38,9 @@ examples:
   identify data/run.mcap --mass 1.05 --json
 
 The moving mass is often not identifiable from 4 ms samples (the piston's mechanical time
-constant M/b_v is far shorter); the model then says so and uses a wide prior range. Give
---mass with the datasheet mass plus the weighed payload to narrow θ1.
+constant M/b_v is far shorter); the model then says so and uses a prior range from the cylinder
+geometry (0.5-4 times piston and rod), or from a rig.mass hint in the log's rig metadata (÷/×
+1.4). Give --mass with the datasheet mass plus the weighed payload to narrow θ1.
 exit status: 0 done, 2 bad log or too little excitation (one error: line), 1 internal error.
 """
 
@@ -53,16 +61,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="fraction of every 10 s of the log kept for validation (default 0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the bootstraps")
     args = parser.parse_args(argv)
-    if args.mass is not None and not 0.0 < args.mass <= 1000.0:
-        raise ExperimentError(f"--mass must be in (0, 1000] kg, got {args.mass}")
-    if not 0.0 <= args.mass_tol < 1.0:
-        raise ExperimentError(f"--mass-tol must be in [0, 1), got {args.mass_tol}")
-    if not 0.05 <= args.holdout <= 0.5:
-        raise ExperimentError(f"--holdout must be in [0.05, 0.5], got {args.holdout}")
 
-    from .pipeline import identify
+    from .pipeline import check_arguments, identify
     from .report import format_summary, write_report
 
+    check_arguments(args.holdout, args.mass, args.mass_tol)
     info(f"identify: reading {args.log}")
     result = identify(args.log, holdout=args.holdout, mass=args.mass, mass_tol=args.mass_tol,
                       seed=args.seed)

@@ -58,6 +58,8 @@ class Dataset:
     sample_period : float
         Logging period [s]: the run metadata's ``sample_period``, else ``rig.Ts``. An
         identification run logs faster than its control period ``rig.Ts``.
+    mass_hint : float or None
+        The log's ``rig.mass`` hint [kg] (contract 1's optional rig key), if any.
     """
 
     path: str
@@ -71,6 +73,7 @@ class Dataset:
     u: np.ndarray
     v: np.ndarray
     sample_period: float = 0.0
+    mass_hint: float | None = None
 
     @property
     def n(self) -> int:
@@ -106,7 +109,8 @@ class Dataset:
         x = self.x[sl]
         return Dataset(path=self.path, sha256=self.sha256, rig=self.rig, t=self.t[sl], x=x,
                        p_a=self.p_a[sl], p_b=self.p_b[sl], p_s=self.p_s[sl], u=self.u[sl],
-                       v=_velocity(x, self.rig.Ts), sample_period=self.rig.Ts)
+                       v=_velocity(x, self.rig.Ts), sample_period=self.rig.Ts,
+                       mass_hint=self.mass_hint)
 
     @property
     def duration(self) -> float:
@@ -267,4 +271,5 @@ def load_dataset(path: str | os.PathLike[str]) -> Dataset:
     t, sens, u = _align(log)
     x = sens[:, 0]
     return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
-                   p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h)
+                   p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h,
+                   mass_hint=log.rig_hints.get("mass"))

@@ -35,6 +35,8 @@ V_SLIDE = 2.0e-3
 V_COULOMB = 2.0e-2
 #: Fewest sliding samples the friction fit accepts.
 MIN_SLIDING = 200
+#: Samples per window of the integrated Coulomb + viscous fit (40 ms at 4 ms).
+COULOMB_WINDOW = 10
 
 
 def smooth_sign(v: np.ndarray) -> np.ndarray:
@@ -47,6 +49,16 @@ def stribeck(v: np.ndarray, F_S: float, F_C: float, v_s: float, alpha: float,
     """Sliding friction of Eq. (2) [N] (sgn(v) at v = 0 is 0)."""
     av = np.abs(v)
     return np.sign(v) * (F_C + (F_S - F_C) * np.exp(-((av / v_s) ** alpha))) + b_v * v
+
+
+def sliding_windows(v: np.ndarray, ok: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end samples of windows of ``w`` samples, half overlapping, inside ``ok`` and
+    sliding one way throughout (same sign of v at both ends)."""
+    n = v.shape[0]
+    bad = np.concatenate([[0], np.cumsum(~ok)])
+    k0 = np.arange(0, n - w - 1, max(1, w // 2))
+    k0 = k0[((bad[k0 + w + 1] - bad[k0]) == 0) & (np.sign(v[k0]) == np.sign(v[k0 + w]))]
+    return k0, k0 + w
 
 
 def _full(p: np.ndarray, fixed: np.ndarray | None) -> tuple[float, ...]:
@@ -79,7 +91,10 @@ class FrictionIdentifier(Identifier):
     std_ : dict
         Standard errors of the Stribeck fit.
     smooth_ : ndarray (3,)
-        θ2 = F_n [N], θ3 = b_v [N s/m], θ4 = A_f [N] of the smooth model (θ1 = ``mass``).
+        θ2 = F_n [N], θ3 = b_v [N s/m], θ4 = A_f [N] of the smooth model (θ1 = ``mass``),
+        fitted like the Coulomb + viscous stage on Eq. (1) integrated over sliding windows.
+    y_ : ndarray
+        F_p - M a on the sliding samples (for plots).
     residual_std_, residual_max_ : float
         Residual force of the Stribeck fit on sliding samples, rms and 99.9th percentile [N].
     sliding_ : ndarray of bool
@@ -125,7 +140,7 @@ class FrictionIdentifier(Identifier):
                 f"record motion at several speeds (the identification run does)")
         y = data.F_p[slide] - self.mass * a[slide]
         vs = v[slide]
-        fixed = self._coulomb_viscous(vs, y)
+        fixed = self._coulomb_viscous(data, mask)
 
         def resid(p: np.ndarray) -> np.ndarray:
             F_S, F_C, v_s, alpha, b_v, F_n = _full(p, fixed)
@@ -170,35 +185,58 @@ class FrictionIdentifier(Identifier):
             sd = np.array([sd_free[0], self._fixed_sd[0], sd_free[1], sd_free[2],
                            self._fixed_sd[1], self._fixed_sd[2]])
         self.std_ = dict(zip(("F_S", "F_C", "v_s", "alpha", "b_v", "F_n"), sd, strict=True))
-        # the paper's smooth model, θ1 = mass fixed: y = -θ2 + θ3 v + θ4 S_f(v)
-        B = np.column_stack([-np.ones_like(vs), vs, smooth_sign(vs)])
-        self.smooth_, *_ = np.linalg.lstsq(B, y, rcond=None)
-        self._B, self._y = B, y
+        # the paper's smooth model, θ1 = mass fixed, integrated over sliding windows as the
+        # Coulomb + viscous stage (the same errors-in-variables reason):
+        # ∫F_p dt - M Δv = -θ2 T + θ3 Δx + θ4 ∫S_f(v) dt
+        k0, k1 = sliding_windows(v, slide, COULOMB_WINDOW)
+        force = cumulative_trapezoid(data.F_p, dx=data.Ts, initial=0.0)
+        sf = cumulative_trapezoid(smooth_sign(v), dx=data.Ts, initial=0.0)
+        T = (k1 - k0) * data.Ts
+        B = np.column_stack([-T, data.x[k1] - data.x[k0], sf[k1] - sf[k0]])
+        yw = (force[k1] - force[k0]) - self.mass * (v[k1] - v[k0])
+        self.smooth_, *_ = np.linalg.lstsq(B, yw, rcond=None)
+        self._B, self._y = B, yw
+        self.y_ = y
         self.sliding_ = slide
         self.fitted_ = True
         return self
 
-    def _coulomb_viscous(self, v: np.ndarray, y: np.ndarray) -> np.ndarray | None:
-        """F_C, b_v, F_n by linear least squares on the samples faster than V_COULOMB, or None.
+    def _coulomb_viscous(self, data: Dataset, mask: np.ndarray) -> np.ndarray | None:
+        """F_C, b_v, F_n by linear least squares on windows sliding faster than V_COULOMB, or
+        None.
 
         Above a few Stribeck velocities the friction is F_C sgn v + b_v v alone, so these
-        samples pin the Coulomb level without the Stribeck terms trading off against it. Fitted
-        jointly with them on 4 ms data, F_C came out -15 % to +19 % on within-spec plants; this
-        way -3.9 % to +3.1 % (docs/identification.md). None (the joint fit is used) with fewer
-        than MIN_SLIDING/2 such samples in either direction, or an unphysical F_C < 0 or
-        b_v <= 0.
+        windows pin the Coulomb level without the Stribeck terms trading off against it. Eq. (1)
+        integrated over a window of ``COULOMB_WINDOW`` samples sliding one way,
+
+            ∫ F_p dt - M Δv = F_C T sgn v + b_v Δx - F_n T,
+
+        needs no acceleration and takes the viscous term exactly from the position change, so
+        the velocity ripple of the PWM (which a derivative pairs with the pressure ripple, an
+        errors-in-variables bias) drops out: on closed-loop logs of simulated rigs F_C came out
+        13 % low and b_v 14 % high per sample, within 2 % and 1 % this way (benchmarks/fleet.py
+        plants; docs/identification.md). None (the joint fit is used) with fewer than
+        MIN_SLIDING/2 fast samples in either direction, or an unphysical F_C < 0 or b_v <= 0.
         """
         self._fixed_sd = None
-        fast = np.abs(v) >= V_COULOMB
+        v = data.v
+        fast = mask & (np.abs(v) >= V_COULOMB)
         per_direction = min(np.count_nonzero(fast & (v > 0)), np.count_nonzero(fast & (v < 0)))
         if per_direction < MIN_SLIDING // 2:
             return None
-        A = np.column_stack([np.sign(v[fast]), v[fast], -np.ones(np.count_nonzero(fast))])
-        coef, *_ = np.linalg.lstsq(A, y[fast], rcond=None)
+        k0, k1 = sliding_windows(v, fast, COULOMB_WINDOW)
+        if len(k0) < 10:
+            return None
+        force = cumulative_trapezoid(data.F_p, dx=data.Ts, initial=0.0)
+        T = (k1 - k0) * data.Ts
+        y = (force[k1] - force[k0]) - self.mass * (v[k1] - v[k0])
+        A = np.column_stack([np.sign(v[k0]) * T, data.x[k1] - data.x[k0], -T])
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
         if coef[0] < 0.0 or coef[1] <= 0.0:  # unphysical: leave it to the bounded joint fit
             return None
-        r = y[fast] - A @ coef
-        cov = np.linalg.pinv(A.T @ A) * float(np.mean(r**2)) * float(self.sg_window)
+        r = y - A @ coef
+        # windows overlap by half: two windows share each sample
+        cov = np.linalg.pinv(A.T @ A) * float(np.mean(r**2)) * 2.0
         self._fixed_sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return coef
 

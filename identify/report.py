@@ -13,6 +13,7 @@ import numpy as np
 
 from pneutune.control.atomic import atomic_write_text
 from pneutune.control.constants import THETA_NAMES, THETA_UNITS, VALVES
+from pneutune.control.model_box import uncertainty_box
 from pneutune.control.plots import save_figure
 
 from .motion import smooth_sign, stribeck
@@ -22,12 +23,8 @@ from .pipeline import IdentifyResult
 def _plot_valves(r: IdentifyResult, out: Path) -> Path:
     v = r.valves
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
-    res = v._residuals(v.theta_, v.curves_) * 1e3
-    na = len(v._k0[0])
-    for ch, ax in enumerate(axes):
-        meas = v._dp[ch] / 1e3
-        wt = v._wt[ch]
-        model = meas + (res[:na] if ch == 0 else res[na:]) / np.where(wt > 0, wt, 1.0) / 1e3
+    for ch, (ax, (meas, model, wt)) in enumerate(zip(axes, v.window_increments(), strict=True)):
+        meas, model = meas / 1e3, model / 1e3
         ax.scatter(meas, model, s=3, c=np.where(wt >= 1.0, "C0", "C1"), alpha=0.5)
         lim = [min(meas.min(), model.min()), max(meas.max(), model.max())]
         ax.plot(lim, lim, "k--", lw=0.8)
@@ -66,7 +63,7 @@ def _plot_friction(r: IdentifyResult, out: Path) -> Path:
     d = r.data
     sl = f.sliding_
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    y = f._y
+    y = f.y_
     vs = d.v[sl] if len(y) == int(sl.sum()) else None
     if vs is not None:
         ax.scatter(vs * 1e3, y + f.F_n_, s=2, alpha=0.3, color="0.5", label="F_p - M a (+F_n)")
@@ -147,6 +144,36 @@ def format_summary(r: IdentifyResult) -> str:
     return "\n".join(lines)
 
 
+def _ranges_section(r: IdentifyResult) -> list[str]:
+    """The ranges tune samples, their basis and what the cross-check against the log did."""
+    m = r.model
+    basis = m.basis or {}
+    cc = r.crosscheck
+    moved: dict[str, list[str]] = {}
+    if cc is not None:
+        for c in cc.checks:
+            if c.shrunk and c.end != "corner":
+                moved.setdefault(c.key, []).append(
+                    f"{c.end} end {c.value:.4g} ruled out ({c.worst(cc.best)}), moved to "
+                    f"{c.kept:.4g}")
+        for key, keys in cc.corner_keys.items():
+            for k in keys:
+                moved.setdefault(k, []).append(f"narrowed for the {key.split(':')[1]} corner")
+    out = ["## Ranges a tuner samples, and their basis", "",
+           "Every coordinate of the plant draws of `tune` (`pneutune.control.model_box`). "
+           + ("Ends that are not a statistical fit were replayed on the held-out log: an end "
+              f"whose NRMSE exceeds {cc.factor:g} times the best fit's (x {cc.best['x']:.3g}, "
+              f"p_a {cc.best['p_a']:.3g}, p_b {cc.best['p_b']:.3g}) plus {cc.floor:g} is "
+              "ruled out and moved toward the nominal value (identify/crosscheck.py)."
+              if cc is not None else "The cross-check against the log was skipped."), "",
+           "| coordinate | nominal | range | basis | cross-check |", "|---|---:|---|---|---|"]
+    for c in uncertainty_box(m):
+        note = "; ".join(moved.get(c.key, [])) or ("passed" if cc is not None else "-")
+        out.append(f"| {c.key} | {c.nominal:.4g} | [{c.low:.4g}, {c.high:.4g}] | "
+                   f"{basis.get(c.key, '-')} | {note} |")
+    return [*out, ""]
+
+
 def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
     """Write report.md and its figures into ``folder``; returns the report's path."""
     out = Path(folder)
@@ -163,9 +190,11 @@ def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
         "## θ and its bounds (Assumption 1)", "",
         "| θ | nominal | min | max | width | basis |", "|---|---:|---:|---:|---:|---|",
     ]
+    mt = m.theta
     for i, name in enumerate(THETA_NAMES):
-        lines.append(f"| θ{i + 1} {name} [{THETA_UNITS[i]}] | {th.nominal[i]:.5g} | "
-                     f"{th.lo[i]:.5g} | {th.hi[i]:.5g} | {th.widths[i]:.4g} | {th.basis[i]} |")
+        lines.append(f"| θ{i + 1} {name} [{THETA_UNITS[i]}] | {mt.nominal[i]:.5g} | "
+                     f"{mt.min[i]:.5g} | {mt.max[i]:.5g} | {mt.max[i] - mt.min[i]:.4g} | "
+                     f"{th.basis[i]} |")
     lines += ["", f"F_max = {m.uncertainty.F_max:.3g} N (99.9th percentile of the friction "
               f"fit's residual force), D_a_max = {m.uncertainty.D_a_max:.3g} Pa/s, "
               f"D_b_max = {m.uncertainty.D_b_max:.3g} Pa/s (largest valve-fit window residual "
@@ -177,9 +206,17 @@ def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
         lines.append(f"| {name} | {v.C:.5g} | [{v.C_min:.4g}, {v.C_max:.4g}] | {v.b:.4f} | "
                      f"[{v.b_min:.3f}, {v.b_max:.3f}] | {v.delay_on * 1e3:.2f} ms | "
                      f"{v.delay_off * 1e3:.2f} ms | {v.min_pulse * 1e3:.2f} ms |")
-    lines += ["", f"Leak A↔B: C = {m.leak.C:.3g} m^3/(s Pa). Only the minimum pulse and the "
-              "difference of the delays show in 4 ms samples; delay_on is set to the minimum "
-              "pulse.", "", f"![valve fit]({figs['valves'].name})", "",
+    v = r.valves
+    if v.timing_ is not None:
+        timing = (f"Delays and minimum pulses from the exact opening of every valve in every "
+                  f"sample (the PWM carrier at {v.phase_ * 1e3:.2f} ms at the log's start; "
+                  f"residual {v.timing_rss_[0]:.3g} against {v.timing_rss_[1]:.3g} kPa² with "
+                  f"the averaged PWM curve).")
+    else:
+        timing = ("Only the minimum pulse and the difference of the delays show in the PWM "
+                  "curve; delay_on is set to the minimum pulse.")
+    lines += ["", f"Leak A↔B: C = {m.leak.C:.3g} m^3/(s Pa). {timing}", "",
+              f"![valve fit]({figs['valves'].name})", "",
               f"![PWM curve]({figs['pwm'].name})", "",
               "## Friction and mass (Eqs. 1-4)", "",
               f"Stribeck: F_S = {m.friction.F_S:.2f} N, F_C = {m.friction.F_C:.2f} N, "
@@ -191,6 +228,7 @@ def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
               f"NRMSE x = {m.fit.nrmse_x:.4f}, p_a = {m.fit.nrmse_p_a:.4f}, "
               f"p_b = {m.fit.nrmse_p_b:.4f}.", "",
               f"![validation]({figs['validation'].name})", ""]
+    lines += _ranges_section(r)
     if r.notes:
         lines += ["## Not identifiable, or weakly", ""] + [f"- {n}" for n in r.notes] + [""]
     path = out / "report.md"

@@ -199,7 +199,7 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
             return self
 
     monkeypatch.setattr(pipeline, "MassIdentifier", Fake)
-    data = SimpleNamespace(Ts=0.004)
+    data = SimpleNamespace(Ts=0.004, rig=PlantConfig().rig, mass_hint=None)
     friction = SimpleNamespace(b_v_=3500.0)
     margin = 0.15 * 3500.0 * 0.004  # the bias margin, 2.1 kg
     for ci, reported in (((1.84, 2.10), False), ((20.0, 22.0), True)):

@@ -1,0 +1,329 @@
+"""Fleet benchmark: identify -> tune on random plants and every kind of log, scored on the truth.
+
+For each of ``--plants`` seeded random plants (:func:`fleet_plant`, the spread of issue 11:
+friction F_C 30-120 N, F_S/F_C 1.1-1.8, v_s 2-8 mm/s, alpha 1-3, b_v 1500-5000 N s/m, valve C
+±30 % and b 0.12-0.30 per valve, delays 1-4 ms, minimum pulse 1-3 ms, payload 0-1.5 kg, a seal
+leak, sensor noise, both PWM update modes) and each log kind
+
+* ``a``: the identification run, sensors every 0.5 ms (``simulate --experiment identification``);
+* ``b``: the same run at the 4 ms control rate;
+* ``c``: a closed-loop 4 ms log of the paper's gains over the Table-1 references back to back
+  (0.5 Hz sine, 0.75 Hz sine, smooth square; 37 s, no labels that identify may use);
+* ``d``: the commissioning run, a second protocol (``simulate --experiment commissioning``);
+* ``e``: a 12 s closed-loop 4 ms log of the paper's gains on ``sine-0.5hz`` (what ``deploy
+  --log`` writes),
+
+it runs ``identify`` on the log, ``tune`` (the command, with a fixed modest trial budget) on the
+model, and scores the tuned controller and ``data/controller-paper.yaml`` on the **true** plant
+in every Table-1 scenario and the disturbance scenario (noise seed ``1000 + plant``, never seen
+by the study). A row passes when identify and tune both exit 0 and the tuned controller's E_p
+is below the paper's in every Table-1 scenario.
+
+    .venv/bin/python benchmarks/fleet.py [--plants 12] [--kinds a,b,c,d] [--trials 60]
+        [--only 0,3] [--out reports/fleet] [--json]
+
+Prints the table (plant x log -> identify errors, tune status, E_p tuned / paper) and writes
+``OUT/fleet.json`` and ``OUT/fleet.md``. Exit status 0 when every row passes, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pneutune.control.closed_loop import simulate_scenario
+from pneutune.control.constants import VALVES
+from pneutune.control.controller_config import load_controller
+from pneutune.control.plant_config import PlantConfig
+from pneutune.control.scenarios import AMPLITUDE, GROUPS, SCENARIOS, Scenario, sine, smooth_square
+from pneutune.control.yamlio import write_yaml
+
+KINDS = {
+    "a": "identification run, 0.5 ms",
+    "b": "identification run, 4 ms",
+    "c": "closed loop, paper's gains, Table-1 references, 37 s, 4 ms",
+    "d": "commissioning run (second protocol), 4 ms",
+    "e": "closed loop, paper's gains, sine-0.5hz, 12 s, 4 ms",
+}
+PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
+SCORED = (*GROUPS["table1"], "disturbance-0.5hz")
+
+
+def fleet_plant(index: int, seed: int = 0) -> PlantConfig:
+    """Random plant ``index`` of the fleet (deterministic in ``seed`` and ``index``).
+
+    The payload is folded into ``mass`` (payload 0), so that the heavy scenario adds its
+    1.136 kg on top of the plant's own load, on the true plant as in the tuner's draws.
+    """
+    rng = np.random.default_rng([seed, index, 11])
+    u = rng.uniform
+    F_C = u(30.0, 120.0)
+    valves = {}
+    for name in VALVES:
+        delay_on = u(1.0e-3, 4.0e-3)
+        valves[name] = {"C": 8.373e-9 * u(0.7, 1.3), "b": u(0.12, 0.30),
+                        "delay_on": delay_on, "delay_off": u(1.0e-3, 4.0e-3),
+                        "min_pulse": min(u(1.0e-3, 3.0e-3), delay_on)}
+    data = {
+        "rig": {"pwm_update": "latched" if index % 2 else "immediate"},
+        "mass": 1.05 + u(0.0, 1.5),
+        "friction": {"F_C": F_C, "F_S": F_C * u(1.1, 1.8), "v_s": u(2.0e-3, 8.0e-3),
+                     "alpha": u(1.0, 3.0), "b_v": u(1500.0, 5000.0)},
+        "valves": valves,
+        "leak": {"C": u(0.2e-10, 2.0e-10)},
+        "disturbance": {"F_n": u(-10.0, 10.0)},
+        "sensors": {"x_noise": u(2.0e-6, 1.0e-5), "p_noise": u(100.0, 600.0)},
+        "sim": {"seed": int(1000 + index)},
+    }
+    return PlantConfig().with_updates(data, source=f"<fleet plant {index}>")
+
+
+def _quintic(t: np.ndarray, x0: float, x1: float, T: float) -> np.ndarray:
+    z = np.clip(t / T, 0.0, 1.0)
+    s = z**3 * (10.0 - 15.0 * z + 6.0 * z * z)
+    ds = 30.0 * z**2 * (1.0 - z) ** 2 / T
+    dds = 60.0 * z * (1.0 - z) * (1.0 - 2.0 * z) / T**2
+    d = x1 - x0
+    return np.column_stack([x0 + d * s, d * ds, d * dds])
+
+
+def table1_sequence(t: np.ndarray, center: float) -> np.ndarray:
+    """The Table-1 references back to back: 12 s of each sine, a 1 s move, 12 s of square."""
+    out = np.empty((t.size, 3))
+    parts = ((0.0, 12.0, lambda tt: sine(tt, center, AMPLITUDE, 0.5)),
+             (12.0, 24.0, lambda tt: sine(tt, center, AMPLITUDE, 0.75)),
+             (24.0, 25.0, lambda tt: _quintic(tt, center, center - AMPLITUDE, 1.0)),
+             (25.0, np.inf, lambda tt: smooth_square(tt, center, AMPLITUDE, 0.5)))
+    for t0, t1, f in parts:
+        sel = (t >= t0) & (t < t1)
+        if sel.any():
+            out[sel] = f(t[sel] - t0)
+    return out
+
+
+SEQUENCE = Scenario("table1-sequence", "Table-1 references back to back", 37.0, 2.0,
+                    table1_sequence)
+
+
+def write_log(kind: str, plant: PlantConfig, path: Path, seed: int) -> None:
+    """Simulate the log of ``kind`` on ``plant`` and save it as MCAP."""
+    run = {"seed": str(seed), "fleet_kind": kind}
+    if kind in ("a", "b"):
+        from pneutune.control.identification_run import simulate_identification
+
+        rec = simulate_identification(plant, seed=seed,
+                                      sample_period=5e-4 if kind == "a" else plant.rig.Ts)
+        run["experiment"] = "identification"
+        rec.save(path, rig=plant.rig_metadata(), run=run)
+    elif kind == "d":
+        from pneutune.control.commissioning_run import simulate_commissioning
+
+        rec = simulate_commissioning(plant, seed=seed)
+        run["experiment"] = "commissioning"
+        rec.save(path, rig=plant.rig_metadata(), run=run)
+    else:
+        paper = load_controller(PAPER)
+        sc = SEQUENCE if kind == "c" else SCENARIOS["sine-0.5hz"]
+        res = simulate_scenario(paper, sc, plant, seed=seed)
+        res.recording().save(path, rig=plant.rig_metadata(), run=run)
+
+
+@dataclass
+class Row:
+    """One plant x log."""
+
+    plant: int
+    kind: str
+    pwm: str
+    identify: str = "-"
+    errors: dict[str, float] | None = None
+    tune: str = "-"
+    tune_note: str = ""
+    e_p: dict[str, tuple[float, float]] | None = None
+    seconds: float = 0.0
+
+    @property
+    def passed(self) -> bool:
+        """identify and tune exit 0 and tuned E_p < paper's in every Table-1 scenario."""
+        if self.identify != "ok" or self.tune != "ok" or not self.e_p:
+            return False
+        return all(self.e_p[s][0] < self.e_p[s][1] for s in GROUPS["table1"])
+
+
+def id_errors(model_path: Path, plant: PlantConfig) -> dict[str, float]:
+    """Relative errors of the identified model against the true plant (worst valve for C, b)."""
+    from pneutune.control.model_config import load_model
+
+    m = load_model(model_path)
+    tv = plant.valves.ordered()
+    mv = m.valves.ordered()
+    c = [abs(a.C / b.C - 1.0) for a, b in zip(mv, tv, strict=True)]
+    bb = [abs(a.b / b.b - 1.0) for a, b in zip(mv, tv, strict=True)]
+    f, tf = m.friction, plant.friction
+    return {"C": max(c), "b": max(bb), "F_C": f.F_C / tf.F_C - 1.0, "b_v": f.b_v / tf.b_v - 1.0,
+            "M": m.mass / plant.total_mass - 1.0,
+            "F_S_range": [m.friction.ranges.F_S[0], m.friction.ranges.F_S[1]]
+            if m.friction.ranges is not None else [float("nan")] * 2,
+            "F_S": tf.F_S, "outside": outside(m, plant)}
+
+
+def outside(model: Any, plant: PlantConfig) -> list[str]:
+    """The coordinates tune samples whose range misses the true plant's value."""
+    from pneutune.control.model_box import uncertainty_box
+
+    truth = {"mass": plant.total_mass, "friction.b_v": plant.friction.b_v,
+             "friction.F_C": plant.friction.F_C, "friction.F_S": plant.friction.F_S,
+             "friction.v_s": plant.friction.v_s, "friction.alpha": plant.friction.alpha,
+             "disturbance.F_n": plant.disturbance.F_n}
+    for name, v in zip(VALVES, plant.valves.ordered(), strict=True):
+        truth[f"valves.{name}.C"] = v.C
+        truth[f"valves.{name}.b"] = v.b
+    return [c.key for c in uncertainty_box(model)
+            if c.key in truth and not c.low <= truth[c.key] <= c.high]
+
+
+def score(controller_path: Path, plant: PlantConfig, seed: int) -> dict[str, float]:
+    """E_p [mm] of a controller on the true plant per scored scenario (inf if it failed)."""
+    ctl = load_controller(controller_path)
+    out = {}
+    for name in SCORED:
+        m = simulate_scenario(ctl, SCENARIOS[name], plant, seed=seed).metrics
+        out[name] = m.E_p_mm if m.status == "ok" else float("inf")
+    return out
+
+
+def _exe(name: str) -> str:
+    return shutil.which(name, path=os.path.dirname(sys.executable)) or name
+
+
+def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
+    """Log, identify, tune and score one plant x log kind."""
+    t0 = time.perf_counter()
+    plant = fleet_plant(plant_index, args.seed)
+    row = Row(plant_index, kind, plant.rig.pwm_update)
+    work = Path(args.out) / f"plant{plant_index:02d}" / kind
+    work.mkdir(parents=True, exist_ok=True)
+    write_yaml(work.parent / "plant.yaml", plant.to_dict(), header="fleet plant (truth)")
+    log = work / "run.mcap"
+    if not log.is_file():
+        write_log(kind, plant, log, seed=plant_index + 1)
+    proc = subprocess.run([_exe("identify"), str(log), "--out", str(work / "identify"),
+                           "--json"], capture_output=True, text=True)
+    if proc.returncode != 0:
+        row.identify = f"exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]}"
+        row.seconds = time.perf_counter() - t0
+        return row
+    row.identify = "ok"
+    model = work / "identify" / "model.yaml"
+    row.errors = id_errors(model, plant)
+    out = work / "tune"
+    if out.exists() and not args.resume:
+        shutil.rmtree(out)
+    proc = subprocess.run([_exe("tune"), "--model", str(model), "--trials", str(args.trials),
+                           "--out", str(out), "--seed", "1", "--json"],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = proc.stderr.strip().splitlines()[-1:] or [""]
+        row.tune = f"exit {proc.returncode}"
+        row.tune_note = tail[0][:200]
+        row.seconds = time.perf_counter() - t0
+        return row
+    res = json.loads(proc.stdout)
+    row.tune = "ok"
+    narrowed = res.get("narrowed") or []
+    tr = res["trials"]
+    row.tune_note = (f"{tr['complete']}/{tr['finished']} complete"
+                     + (f"; narrowed {len(narrowed)}" if narrowed else ""))
+    noise = 1000 + plant_index
+    tuned = score(out / "controller.yaml", plant, noise)
+    paper = score(PAPER, plant, noise)
+    row.e_p = {s: (tuned[s], paper[s]) for s in SCORED}
+    row.seconds = time.perf_counter() - t0
+    return row
+
+
+def _pct(x: float) -> str:
+    return f"{x * 100:+.0f}%" if np.isfinite(x) else "nan"
+
+
+def table(rows: list[Row]) -> str:
+    """Markdown table of the fleet."""
+    head = ("| plant | PWM | log | C | b | F_C | b_v | M | F_S range (true) | truth outside "
+            "the ranges | tune | "
+            + " | ".join(f"{s} E_p" for s in SCORED) + " | pass |")
+    sep = "|" + "---|" * (head.count("|") - 1)
+    lines = [head, sep]
+    for r in rows:
+        e = r.errors or {}
+        ids = ([f"{e['C'] * 100:.1f}%", f"{e['b'] * 100:.0f}%", _pct(e["F_C"]), _pct(e["b_v"]),
+                _pct(e["M"]),
+                f"[{e['F_S_range'][0]:.0f}, {e['F_S_range'][1]:.0f}] ({e['F_S']:.0f})",
+                ", ".join(e["outside"]) or "none"]
+               if e else [r.identify] + [""] * 6)
+        eps = ([f"{r.e_p[s][0]:.2f} / {r.e_p[s][1]:.2f}" for s in SCORED] if r.e_p
+               else ["-"] * len(SCORED))
+        tune = r.tune if r.tune != "ok" else f"ok ({r.tune_note})"
+        if r.tune != "ok" and r.tune_note:
+            tune += f": {r.tune_note}"
+        lines.append(f"| {r.plant} | {r.pwm} | {r.kind} | " + " | ".join(ids) + f" | {tune} | "
+                     + " | ".join(eps) + f" | {'yes' if r.passed else '**no**'} |")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    """Run the fleet and print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--plants", type=int, default=12)
+    ap.add_argument("--only", help="comma-separated plant indices (default: all)")
+    ap.add_argument("--kinds", default="a,b,c,d", help=f"log kinds: {KINDS}")
+    ap.add_argument("--trials", type=int, default=60, help="tune --trials (default 60)")
+    ap.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
+    ap.add_argument("--out", default="reports/fleet")
+    ap.add_argument("--resume", action="store_true", help="keep existing tune studies")
+    ap.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
+    args = ap.parse_args()
+    plants = ([int(i) for i in args.only.split(",")] if args.only
+              else list(range(args.plants)))
+    kinds = [k.strip() for k in args.kinds.split(",")]
+    for k in kinds:
+        if k not in KINDS:
+            ap.error(f"unknown log kind {k!r}; expected one of {', '.join(KINDS)}")
+    rows: list[Row] = []
+    t0 = time.perf_counter()
+    for i in plants:
+        for k in kinds:
+            r = run_row(i, k, args)
+            rows.append(r)
+            sys.stderr.write(f"plant {i} log {k}: identify {r.identify}, tune {r.tune} "
+                             f"{r.tune_note}, {'pass' if r.passed else 'FAIL'} "
+                             f"({r.seconds:.0f} s)\n")
+    text = table(rows)
+    wall = time.perf_counter() - t0
+    summary = (f"{sum(r.passed for r in rows)}/{len(rows)} rows pass; {wall / 60:.1f} min; "
+               f"tune --trials {args.trials}; kinds: "
+               + "; ".join(f"{k} = {KINDS[k]}" for k in kinds))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fleet.md").write_text(text + "\n\n" + summary + "\n")
+    data = [r.__dict__ | {"passed": r.passed} for r in rows]
+    (out / "fleet.json").write_text(json.dumps(data, indent=1, default=float))
+    if args.json:
+        print(json.dumps({"rows": data, "summary": summary}, default=float))
+    else:
+        print(text)
+        print(summary)
+    return 0 if all(r.passed for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
