@@ -143,13 +143,15 @@ def _deriv(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: floa
         dx = 0.0
         dv = 0.0
     else:
+        # The direction of motion is frozen for the whole integration step (``direction``, the
+        # sign of v at the step's start): Eq. (2)'s friction is discontinuous at v = 0, and an
+        # RK4 stage that strayed past zero would otherwise flip it and push the velocity back,
+        # so the step would end with v of the same sign and the stop (and the stick) would be
+        # missed. With the direction frozen the stages continue the sliding solution smoothly;
+        # a velocity that ends the step past zero is the event, located inside the step by
+        # _integrate.
         dx = v
-        d = direction
-        if v > 0.0:
-            d = 1.0
-        elif v < 0.0:
-            d = -1.0
-        ff = stribeck_force(v, d, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
+        ff = stribeck_force(v, direction, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
         dv = (applied_force(p, pa, pb, f_ext) - ff) / p[P_M]
     dpa = (-p[P_N] * pa * p[P_AA] * dx + nRT * ma) / Va + p[P_DA]
     dpb = (p[P_N] * pb * p[P_AB] * dx + nRT * mb) / Vb + p[P_DB]
@@ -354,7 +356,8 @@ def truth(p: np.ndarray, s: np.ndarray, p_s: float, force_steps: np.ndarray,
     f_ext = external_force(p, force_steps, s[S_T])
     stuck = s[S_STUCK] > 0.5
     f_app = applied_force(p, pa, pb, f_ext)
-    _, dv, _, _ = _deriv(p, s, x, v, pa, pb, stuck, 1.0 if f_app > 0.0 else -1.0, p_s, f_ext)
+    d = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else (1.0 if f_app > 0.0 else -1.0))
+    _, dv, _, _ = _deriv(p, s, x, v, pa, pb, stuck, d, p_s, f_ext)
     if stuck:
         ff = min(max(f_app, -p[P_FS]), p[P_FS])
     else:

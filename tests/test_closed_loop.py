@@ -82,12 +82,13 @@ def test_direct_diff_chatters_more_than_modified_darc(paper):
 
 
 def test_step_size_accuracy_closed_loop(paper):
-    """Issue 3: the default integration step gives E_p and E_rms within 0.005 mm of a run at
-    half the step (sine-0.5hz, modified DARC)."""
+    """Issue 3: the default integration step gives E_p and E_rms within 0.005 mm of a converged
+    run (sine-0.5hz, modified DARC). Converged: 100, 50 and 25 us give the same 0.3129 / 0.0953
+    mm (docs/integration.md). The reference is not half the step: with stiction the closed loop
+    is sensitive to when a stick ends, and 200 us happens to land 0.015 mm off."""
     sc = SCENARIOS["sine-0.5hz"]
     a = simulate_scenario(paper, sc, seed=1).metrics
-    half = PlantConfig().sim.dt / 2.0
-    b = simulate_scenario(paper, sc, PlantConfig().with_updates({"sim": {"dt": half}}),
+    b = simulate_scenario(paper, sc, PlantConfig().with_updates({"sim": {"dt": 5.0e-5}}),
                           seed=1).metrics
     assert abs(a.E_p_mm - b.E_p_mm) <= 0.005
     assert abs(a.E_rms_mm - b.E_rms_mm) <= 0.005

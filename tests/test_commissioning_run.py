@@ -113,11 +113,13 @@ def test_piston_stays_on_the_end_stop_during_the_staircases(fast_run):
 def test_constant_speed_moves_reach_their_speed(fast_run):
     """Over the middle 60 % of each move's travel the mean speed is within ±30 % of the command
     for speeds >= 5 mm/s (within 2 % when written: 80 mm/s is the slowest, -2 %). The mean
-    speed is the measured displacement over the time (5 um noise over >= 6 mm: 0.1 %), not the
-    mean of the sampled true velocity: in the stick-slip of the slow moves that mean runs up to
-    26 % high at the default 0.4 ms integration step (sim.dt) while the displacement does not.
-    The true velocity shows that from 10 mm/s on the piston slides throughout: it has the
-    commanded sign on >= 95 % of the middle samples (100 % when written)."""
+    speed is the measured displacement over the time (5 um noise over >= 6 mm: 0.1 %). The
+    true velocity shows that from 20 mm/s on the piston slides throughout: it has the commanded
+    sign on >= 95 % of the middle samples (100 % measured). Below that the paper's rig
+    stick-slips (F_S = 1.5 F_C, v_s = 5 mm/s): stuck 87 %, 64 % and 32 % of the 2, 5 and
+    10 mm/s moves, alike at 0.4 ms and 50 us steps (tests/test_physics.py). When this test was
+    written the plant missed stops inside an RK4 step and crept instead; the threshold was
+    10 mm/s then."""
     x, v, t = fast_run.sensors_[:, 0], fast_run.truth_[:, 0], fast_run.t
     moves = [(label, params, m) for label, kind, params, m in _segments(fast_run)
              if kind == "constant_speed"]
@@ -132,7 +134,7 @@ def test_constant_speed_moves_reach_their_speed(fast_run):
         i, j = middle[0], middle[-1]
         mean_speed = (x[j] - x[i]) / (t[j] - t[i])
         assert mean_speed == pytest.approx(speed, rel=0.3), label
-        if abs(speed) >= 0.01:
+        if abs(speed) >= 0.02:
             assert np.mean(v[middle] * np.sign(speed) > 0.0) >= 0.95, label
 
 
