@@ -41,8 +41,10 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
+## lint: ruff, and the import layers of pneutune.control (import-linter, pyproject.toml)
 lint: $(STAMP)
 	$(BIN)/ruff check control identify tune tests benchmarks
+	$(BIN)/lint-imports
 
 ## bench: print the benchmark figures
 bench: $(STAMP)

@@ -18,11 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pneutune.control import darc
-from pneutune.control.closed_loop import simulate_scenario
-from pneutune.control.controller_config import load_controller, pack
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.scenarios import SCENARIOS, Scenario
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.law import darc
+from pneutune.control.law.layout import pack
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import SCENARIOS, Scenario
 
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pneutune.control.identification_run import position_loop
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.rig import SimRig
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.rig.identification_run import position_loop
+from pneutune.control.rig.simrig import SimRig
 
 
 def tracking_metrics(dt: float, mode: str = "immediate", duration: float = 10.0,

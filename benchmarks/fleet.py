@@ -41,12 +41,19 @@ from typing import Any
 
 import numpy as np
 
-from pneutune.control.closed_loop import simulate_scenario
 from pneutune.control.constants import VALVES
-from pneutune.control.controller_config import load_controller
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.scenarios import AMPLITUDE, GROUPS, SCENARIOS, Scenario, sine, smooth_square
-from pneutune.control.yamlio import write_yaml
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.contracts.yamlio import write_yaml
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import (
+    AMPLITUDE,
+    GROUPS,
+    SCENARIOS,
+    Scenario,
+    sine,
+    smooth_square,
+)
 
 KINDS = {
     "a": "identification run, 0.5 ms",
@@ -119,14 +126,14 @@ def write_log(kind: str, plant: PlantConfig, path: Path, seed: int) -> None:
     """Simulate the log of ``kind`` on ``plant`` and save it as MCAP."""
     run = {"seed": str(seed), "fleet_kind": kind}
     if kind in ("a", "b"):
-        from pneutune.control.identification_run import simulate_identification
+        from pneutune.control.rig.identification_run import simulate_identification
 
         rec = simulate_identification(plant, seed=seed,
                                       sample_period=5e-4 if kind == "a" else plant.rig.Ts)
         run["experiment"] = "identification"
         rec.save(path, rig=plant.rig_metadata(), run=run)
     elif kind == "d":
-        from pneutune.control.commissioning_run import simulate_commissioning
+        from pneutune.control.rig.commissioning_run import simulate_commissioning
 
         rec = simulate_commissioning(plant, seed=seed)
         run["experiment"] = "commissioning"
@@ -162,7 +169,7 @@ class Row:
 
 def id_errors(model_path: Path, plant: PlantConfig) -> dict[str, float]:
     """Relative errors of the identified model against the true plant (worst valve for C, b)."""
-    from pneutune.control.model_config import load_model
+    from pneutune.control.contracts.model import load_model
 
     m = load_model(model_path)
     tv = plant.valves.ordered()
@@ -179,7 +186,7 @@ def id_errors(model_path: Path, plant: PlantConfig) -> dict[str, float]:
 
 def outside(model: Any, plant: PlantConfig) -> list[str]:
     """The coordinates tune samples whose range misses the true plant's value."""
-    from pneutune.control.model_box import uncertainty_box
+    from pneutune.control.sim.model_box import uncertainty_box
 
     truth = {"mass": plant.total_mass, "friction.b_v": plant.friction.b_v,
              "friction.F_C": plant.friction.F_C, "friction.F_S": plant.friction.F_S,

@@ -26,9 +26,9 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from pneutune.control.constants import VALVES
-from pneutune.control.identification_run import simulate_identification
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.plant_params import P_BV, P_DOFF, P_DON, P_DT, P_M, P_MINP, pack_plant
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.plant.params import P_BV, P_DOFF, P_DON, P_DT, P_M, P_MINP, pack_plant
+from pneutune.control.rig.identification_run import simulate_identification
 from pneutune.identify.dataset import Dataset, load_dataset
 from pneutune.identify.prediction import position_innovations, pressure_residuals
 

@@ -21,8 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from pneutune.control.identification_run import simulate_identification
-from pneutune.control.plant_config import PlantConfig
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.rig.identification_run import simulate_identification
 from pneutune.identify.pipeline import identify
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))

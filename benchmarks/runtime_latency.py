@@ -3,7 +3,7 @@
 Prints, for the paper's config on sine-0.5hz (one 12 s scenario = 3000 samples, after a
 warm-up run):
 
-* the control step alone (:func:`pneutune.control.darc.step_into`), p50 and p99;
+* the control step alone (:func:`pneutune.control.law.darc.step_into`), p50 and p99;
 * the supervisor's sensor check, p50 and p99 (timed separately on the recorded samples);
 * sensor to valve (read, supervisor, step, write) and the whole iteration (plus recording and
   advancing the simulated plant), p50 and p99, on the in-process rig and on the example
@@ -28,10 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run(rig_kind: str, seconds: float | None, realtime: bool):
-    from pneutune.control.controller_config import load_controller
-    from pneutune.control.driver import PipeRig
-    from pneutune.control.runtime import run_scenario, sim_rig_for
-    from pneutune.control.scenarios import SCENARIOS
+    from pneutune.control.contracts.controller import load_controller
+    from pneutune.control.rig.pipe import PipeRig
+    from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+    from pneutune.control.sim.scenarios import SCENARIOS
 
     controller = load_controller(ROOT / "data" / "controller-paper.yaml")
     sc = SCENARIOS["sine-0.5hz"]
@@ -49,8 +49,8 @@ def _run(rig_kind: str, seconds: float | None, realtime: bool):
 
 
 def _supervisor_cost(sensors: np.ndarray) -> tuple[float, float]:
-    from pneutune.control.controller_config import load_controller
-    from pneutune.control.supervisor import Supervisor, SupervisorSettings
+    from pneutune.control.contracts.controller import load_controller
+    from pneutune.control.rig.supervisor import Supervisor, SupervisorSettings
 
     sup = Supervisor(SupervisorSettings.from_controller(
         load_controller(ROOT / "data" / "controller-paper.yaml")))

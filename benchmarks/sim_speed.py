@@ -24,9 +24,9 @@ PROBE = r"""
 import time
 t0 = time.perf_counter()
 import numpy as np
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.plant_params import pack_plant
-from pneutune.control import plant
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.plant.params import pack_plant
+from pneutune.control.plant import dynamics as plant
 t1 = time.perf_counter()
 pp = pack_plant(PlantConfig())
 s = plant.initial_state(pp.vec, 0.0235, 2.0e5, 2.0e5)
@@ -53,9 +53,9 @@ def compile_times() -> tuple[float, float]:
 
 def speed(duration: float = 20.0, repeats: int = 5) -> tuple[float, float]:
     """(simulated s per wall s, wall ms per 20 s run) of the plant under a PWM pattern."""
-    from pneutune.control import plant
-    from pneutune.control.plant_config import PlantConfig
-    from pneutune.control.plant_params import pack_plant
+    from pneutune.control.contracts.plant import PlantConfig
+    from pneutune.control.plant import dynamics as plant
+    from pneutune.control.plant.params import pack_plant
 
     pp = pack_plant(PlantConfig())
     Ts = pp.config.rig.Ts

@@ -28,8 +28,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from pneutune.control.model_config import model_from_plant, save_model
-from pneutune.control.plant_config import PlantConfig
+from pneutune.control.contracts.model import save_model
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
 
 
 def main() -> int:

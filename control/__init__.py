@@ -1,11 +1,16 @@
 """The rig and its controller: plant model and simulator, valves and PWM, friction, Kalman
 filters, DARC variants, scenarios, closed loop, MCAP run logs, config schemas and the runtime.
 
+The package is layered; each layer imports only those before it (checked by import-linter in
+``make lint``, docs/architecture.md): ``constants``/``errors`` -> ``physics`` -> ``contracts`` ->
+``logs`` -> ``plant`` -> ``law`` -> ``sim`` -> ``rig`` -> ``cli``. It never imports
+``pneutune.identify`` or ``pneutune.tune``.
+
 numba cache: numba keys a cached compiled function on its own source file only, so after an
 edit of a module it calls (or of index constants it imports) a cached caller would keep running
 the old code. pneutune therefore points numba's cache at a folder named by a hash of every source
-file of this package (unless ``NUMBA_CACHE_DIR`` is set): any change of the sources, or a new
-version, compiles afresh.
+file of this package and its subpackages (unless ``NUMBA_CACHE_DIR`` is set): any change of the
+sources, or a new version, compiles afresh.
 """
 
 import hashlib
@@ -21,8 +26,9 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree wi
 
 def _source_hash() -> str:
     h = hashlib.sha256(__version__.encode())
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        h.update(path.name.encode())
+    root = Path(__file__).parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:16]
 

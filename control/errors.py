@@ -2,7 +2,7 @@
 
 Every error a user can cause with a bad file or a bad argument is a :class:`PneutuneError`.
 The command-line entry points turn it into one ``error: ...`` line on stderr and exit status 2
-(see :func:`pneutune.control.cli_common.run_cli`). Each also subclasses a builtin so that library
+(see :func:`pneutune.control.cli.common.run_cli`). Each also subclasses a builtin so that library
 users can catch it as the builtin they expect.
 """
 

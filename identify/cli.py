@@ -5,8 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from pneutune.control.cli_common import info, make_parser, print_json, run_cli
-from pneutune.control.model_config import save_model
+from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.contracts.model import save_model
 
 DESCRIPTION = """\
 Identify the servo-pneumatic axis behind a run log (MCAP, contract pneutune.log/1): valve

@@ -7,13 +7,13 @@ single simulation of the log. So, on the held-out part of the log (the validatio
 :mod:`.validation`: the model simulated from the measured state under the logged duties):
 
 1. the nominal model gives the best fit, NRMSE_s for s in (x, p_a, p_b);
-2. each coordinate of the box that ``tune`` samples (:func:`pneutune.control.model_box.
+2. each coordinate of the box that ``tune`` samples (:func:`pneutune.control.sim.model_box.
    uncertainty_box`), alone at each of its range ends (the rest nominal), must give
    ``NRMSE_s <= FACTOR * best_s + FLOOR`` for every signal; a valve's C or b is replayed with
    the other at the best of :data:`PARTNER_POINTS` values over its range, since the two trade
    off on subsonic flow (on a closed-loop log a C 12 % off with b near 0 fitted as well as the
    truth);
-3. so must the two corners ``tune`` uses (:func:`pneutune.control.model_box.corner`), moving the
+3. so must the two corners ``tune`` uses (:func:`pneutune.control.sim.model_box.corner`), moving the
    checked coordinates only.
 
 Only the coordinates whose range is not a statistical fit are checked (the caller names them:
@@ -47,8 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from pneutune.control.model_box import Coordinate, corner, plant_from_values, uncertainty_box
-from pneutune.control.model_config import ModelConfig
+from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.sim.model_box import Coordinate, corner, plant_from_values, uncertainty_box
 
 from .dataset import Dataset
 from .validation import validate
@@ -274,7 +274,7 @@ def _shrunk_coords(coords: tuple[Coordinate, ...], box: Mapping[str, tuple[float
 def narrowed_model(model: ModelConfig, box: Mapping[str, tuple[float, float]]) -> ModelConfig:
     """``model`` with its ranges set to ``box`` where ``box`` is narrower.
 
-    Each coordinate goes where :func:`~pneutune.control.model_box.uncertainty_box` reads it:
+    Each coordinate goes where :func:`~pneutune.control.sim.model_box.uncertainty_box` reads it:
     the mass into ``mass_range`` and θ1; F_n, D_a, D_b into θ2, θ5, θ6; the friction
     coordinates into ``friction.ranges``; the valves into their ``C_min`` ... ``b_max``. θ3 and
     θ4 (the smooth model's b_v and A_f) keep their boxes, which the controller's projection uses.

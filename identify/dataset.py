@@ -17,9 +17,9 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from pneutune.control.constants import VALVES
+from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.errors import LogError
-from pneutune.control.plant_config import RigConfig
-from pneutune.control.runlog import RunLog, read_run_log
+from pneutune.control.logs.runlog import RunLog, read_run_log
 
 #: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (issue 4's unit check).
 P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5
@@ -158,7 +158,7 @@ class Dataset:
 def _rig_from_log(log: RunLog) -> RigConfig:
     from pydantic import ValidationError
 
-    from pneutune.control.yamlio import validation_error
+    from pneutune.control.contracts.yamlio import validation_error
 
     try:
         return RigConfig.model_validate(dict(log.rig))

@@ -36,10 +36,11 @@ from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter, savgol_filter
 
 from pneutune.control.errors import LogError
+from pneutune.control.physics.friction import stribeck
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
-from .motion import FrictionIdentifier, stribeck
+from .motion import FrictionIdentifier
 
 #: Sliding speed above which windows are used [m/s] (as the Coulomb stage of the friction fit).
 V_LAG = 0.02

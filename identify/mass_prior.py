@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from pneutune.control.plant_config import RigConfig
+from pneutune.control.contracts.plant import RigConfig
 
 #: Densities of the piston (aluminium) and the rod (steel) [kg/m^3].
 RHO_PISTON, RHO_ROD = 2700.0, 7850.0

@@ -22,7 +22,8 @@ from scipy.integrate import cumulative_trapezoid
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
-from pneutune.control.friction import SF_SLOPE
+from pneutune.control.physics.friction import smooth_sign_array as smooth_sign
+from pneutune.control.physics.friction import stribeck
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
@@ -37,18 +38,6 @@ V_COULOMB = 2.0e-2
 MIN_SLIDING = 200
 #: Samples per window of the integrated Coulomb + viscous fit (40 ms at 4 ms).
 COULOMB_WINDOW = 10
-
-
-def smooth_sign(v: np.ndarray) -> np.ndarray:
-    """S_f of Eq. (4), vectorised: (2/π) arctan(1000 v)."""
-    return (2.0 / np.pi) * np.arctan(SF_SLOPE * v)
-
-
-def stribeck(v: np.ndarray, F_S: float, F_C: float, v_s: float, alpha: float,
-             b_v: float) -> np.ndarray:
-    """Sliding friction of Eq. (2) [N] (sgn(v) at v = 0 is 0)."""
-    av = np.abs(v)
-    return np.sign(v) * (F_C + (F_S - F_C) * np.exp(-((av / v_s) ** alpha))) + b_v * v
 
 
 def sliding_windows(v: np.ndarray, ok: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:

@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pneutune.control.constants import MODEL_SCHEMA, VALVES
+from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError, LogError
-from pneutune.control.model_config import ModelConfig
-from pneutune.control.plant_config import PlantConfig
 
 from .bounds import ThetaBounds, theta_bounds
 from .crosscheck import CrossCheck, cross_check, narrowed_model
@@ -323,7 +323,7 @@ class Ranges:
     Attributes
     ----------
     basis : dict
-        Coordinate key path (as :func:`pneutune.control.model_box.uncertainty_box` names it)
+        Coordinate key path (as :func:`pneutune.control.sim.model_box.uncertainty_box` names it)
         -> one sentence: ``statistics: ...``, ``data bound: ...`` or ``prior: ...``.
     unsupported : frozenset of str
         The coordinates whose range is not a statistical fit (a prior, a structural margin, an

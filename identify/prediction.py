@@ -1,7 +1,8 @@
 """One-step predictions of a run log by the compiled plant, for prediction-error fits (numba).
 
 The identified model is checked against the log *between* samples: from the measured state at
-sample k, the plant of :mod:`pneutune.control.plant` (the one implementation, with every valve
+sample k, the plant of :mod:`pneutune.control.plant.dynamics` (the one implementation, with every
+valve
 switching inside the sample) runs under the logged duties to sample k+1, and the prediction is
 compared with the measurement there. Two predictors:
 
@@ -24,8 +25,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from pneutune.control.plant import advance, initial_state, set_duties
-from pneutune.control.plant_params import S_PA, S_PB, S_X
+from pneutune.control.plant.dynamics import advance, initial_state, set_duties
+from pneutune.control.plant.params import S_PA, S_PB, S_X
 
 
 @njit(cache=True, parallel=True)

@@ -5,24 +5,22 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
-from pneutune.control.atomic import atomic_write_text
 from pneutune.control.constants import THETA_NAMES, THETA_UNITS, VALVES
-from pneutune.control.model_box import uncertainty_box
-from pneutune.control.plots import save_figure
+from pneutune.control.contracts.atomic import atomic_write_text, save_figure
+from pneutune.control.physics.friction import smooth_sign_array as smooth_sign
+from pneutune.control.physics.friction import stribeck
+from pneutune.control.sim.model_box import uncertainty_box
 
-from .motion import smooth_sign, stribeck
 from .pipeline import IdentifyResult
 
 
 def _plot_valves(r: IdentifyResult, out: Path) -> Path:
     v = r.valves
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig = Figure(figsize=(10, 4.2))
+    axes = fig.subplots(1, 2)
     for ch, (ax, (meas, model, wt)) in enumerate(zip(axes, v.window_increments(), strict=True)):
         meas, model = meas / 1e3, model / 1e3
         ax.scatter(meas, model, s=3, c=np.where(wt >= 1.0, "C0", "C1"), alpha=0.5)
@@ -41,7 +39,8 @@ def _plot_valves(r: IdentifyResult, out: Path) -> Path:
 
 def _plot_pwm(r: IdentifyResult, out: Path) -> Path:
     v = r.valves
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+    fig = Figure(figsize=(6, 4.5))
+    ax = fig.subplots()
     for i, name in enumerate(VALVES):
         ax.plot(v.knots_, v.curves_[i], lw=0.8, label=name)
     ax.plot(v.knots_, v.curve_, "k", lw=2, label="mean (model.yaml)")
@@ -62,7 +61,8 @@ def _plot_friction(r: IdentifyResult, out: Path) -> Path:
     f = r.friction
     d = r.data
     sl = f.sliding_
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig = Figure(figsize=(7, 4.5))
+    ax = fig.subplots()
     y = f.y_
     vs = d.v[sl] if len(y) == int(sl.sum()) else None
     if vs is not None:
@@ -85,7 +85,8 @@ def _plot_friction(r: IdentifyResult, out: Path) -> Path:
 
 def _plot_validation(r: IdentifyResult, out: Path) -> Path:
     val = r.validation
-    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    fig = Figure(figsize=(9, 7))
+    axes = fig.subplots(3, 1, sharex=True)
     scale = (1e3, 1e-5, 1e-5)
     ylabels = ("x [mm]", "p_a [bar]", "p_b [bar]")
     keys = ("x", "p_a", "p_b")
@@ -160,7 +161,7 @@ def _ranges_section(r: IdentifyResult) -> list[str]:
             for k in keys:
                 moved.setdefault(k, []).append(f"narrowed for the {key.split(':')[1]} corner")
     out = ["## Ranges a tuner samples, and their basis", "",
-           "Every coordinate of the plant draws of `tune` (`pneutune.control.model_box`). "
+           "Every coordinate of the plant draws of `tune` (`pneutune.control.sim.model_box`). "
            + ("Ends that are not a statistical fit were replayed on the held-out log: an end "
               f"whose NRMSE exceeds {cc.factor:g} times the best fit's (x {cc.best['x']:.3g}, "
               f"p_a {cc.best['p_a']:.3g}, p_b {cc.best['p_b']:.3g}) plus {cc.floor:g} is "

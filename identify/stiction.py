@@ -2,7 +2,7 @@
 
 F_S is weakly identified by the sliding-friction fit (:mod:`~pneutune.identify.motion`): the
 Stribeck peak lasts less than a control sample. Stiction itself bounds it from both sides
-(Eq. 2, the F_e branch; the simulator's rule in :mod:`pneutune.control.plant`): a piston at
+(Eq. 2, the F_e branch; the simulator's rule in :mod:`pneutune.control.plant.dynamics`): a piston at
 rest away from the end stops carries a net applied force ``|F| <= F_S``, and it breaks away,
 in the direction of the force, when ``|F|`` reaches F_S. Here ``F = A_a p_a - A_b p_b - p0 A_r
 + F_n`` from the measured pressures and the constant force F_n (known to ``+-F_n_half``). Only
@@ -75,20 +75,20 @@ named plants spanning F_C 30-120 N, F_S/F_C 1.1-1.8, v_s 2-8 mm/s, alpha 1-3, b_
 s/m, valve C +-30 %, delays 1-4 ms, min pulse 1-3 ms, payload 0-1.5 kg, x noise 2-10 um,
 p noise 100-600 Pa, both pwm_update modes, three noise seeds, and 72 random plants from the
 same ranges (F_n from the friction fit on 60 logs): every interval contained F_S, 808 runs on
-about 640 logs. Seed 1 of the paper's rig (F_S = 75 N): identification run [58, 102] N at
-0.5 ms, [37, 102] N at 4 ms ([64, 102] and [45, 102] N with b_v_max and m_max from identify's
-θ bounds); a quiet rig with F_S = 188 N: [181, 201] and [142, 199] N. Closed-loop logs give
-lower bounds at 0-90 % of F_S and upper bounds that are loose or absent: few of their
-break-aways start from a slowly rising force with the valves pushing one way.
+about 640 logs (simulated before the plant's stop fix, see below). With the fixed plant, seed 1
+of the paper's rig (F_S = 75 N): identification run [62, 131] N at 0.5 ms, [55, 144] N at 4 ms;
+commissioning run [54, 126] N (tests/test_stiction.py). Closed-loop logs give lower bounds and
+upper bounds that are loose or absent: few of their break-aways start from a slowly rising force
+with the valves pushing one way.
 
-The simulator's stick-slip (control/plant.py, left as it is): when the velocity changes sign
-inside an RK4 step, the stages straddle the sign switch of the friction and the step can
-return a velocity of the same sign, so the zero crossing is missed and the piston is not
-stuck. It then creeps with its velocity flipping sign from step to step, at applied forces
-well below F_S (from 3 mm/s at 60 N against F_S = 75 N it crept 15 um in 5 ms before
-sticking), and may leave such a "rest" at a force below F_S. Without the stop and held-force
-conditions this broke the upper bound on 2 of 48 logs; the method cannot tell such a rest
-from a stick, only refuse the weak ones.
+The stop and held-force conditions were first needed for a simulator fault, since fixed
+(control/plant/dynamics.py, 2026-11-24): an RK4 stage that strayed past v = 0 flipped the
+friction, the stop was missed and the piston crept, and could leave a "rest" at a force below
+F_S. They stay: a real rig's sensor can show a creep as a rest too. With the stops found
+exactly the piston breaks away from true rests while the force keeps rising through the two
+samples that detect the motion, so the upper bounds are looser than before (1.4-2 F_S against
+1.3-1.6 F_S); estimating the break-away instant from the motion that follows would tighten
+them.
 """
 
 from __future__ import annotations

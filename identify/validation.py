@@ -2,7 +2,7 @@
 
 The held-out samples are cut into windows (default 2 s). Each window starts from the measured
 state (position, velocity from the Savitzky-Golay estimate, both pressures) and is driven by
-the logged duties through the full simulated rig (:mod:`pneutune.control.plant`: valve
+the logged duties through the full simulated rig (:mod:`pneutune.control.plant.dynamics`: valve
 switching with the identified delays, Stribeck friction, end stops) built from the identified
 model. NRMSE = rms(simulated - measured) / range(measured), per signal, over all windows: the
 ``fit`` block of model.yaml.
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_filter
 
-from pneutune.control import plant
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.plant_params import S_STUCK, S_T, S_V, pack_plant
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.plant import dynamics as plant
+from pneutune.control.plant.params import S_STUCK, S_T, S_V, pack_plant
 
 from .dataset import Dataset, IdentificationError
 

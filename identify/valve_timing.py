@@ -10,7 +10,8 @@ before and the valve's delays and minimum pulse. A closed-loop log fitted with r
 by 15-50 % (benchmarks/fleet.py).
 
 The opening per sample is computed here exactly as the simulated rig switches its valves
-(:func:`pneutune.control.valves.open_fractions`: the edge-aligned PWM carrier at ``rig.pwm_hz``,
+(:func:`pneutune.control.plant.valves.open_fractions`: the edge-aligned PWM carrier at
+``rig.pwm_hz``,
 the update mode, delays and the minimum pulse; DESIGN.md), given three numbers per valve
 (``delay_on``, ``delay_off``, ``min_pulse``) and the carrier phase at the log's first sample.
 Those are found by search (:func:`coordinate_search`, :func:`phase_search`) on the chamber
@@ -25,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pneutune.control import plant
-from pneutune.control.plant_config import PlantConfig, RigConfig
-from pneutune.control.plant_params import P_DOFF, P_DON, P_MINP, pack_plant
-from pneutune.control.valves import open_fractions
+from pneutune.control.contracts.plant import PlantConfig, RigConfig
+from pneutune.control.plant import dynamics as plant
+from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
+from pneutune.control.plant.valves import open_fractions
 
 #: Longest delay searched, in PWM periods (the plant allows up to 4).
 MAX_DELAY_PERIODS = 0.5

@@ -5,7 +5,8 @@ The chamber equations (5)-(6) of the paper, integrated over windows of whole PWM
     p(t_k1) - p(t_k0) = sum_k [ Ts n R T0 / V_k (r_in(u_in,k) Φ_in,k - r_out(u_out,k) Φ_out,k ∓ L_k)
                                 - n p_k (V_k+1 - V_k) / V_k ] + Ts (k1 - k0) D
 
-with Φ the ISO 6358 flow of Eq. (7) (:func:`pneutune.control.flow.signed_flow_array`, reverse
+with Φ the ISO 6358 flow of Eq. (7) (:func:`pneutune.control.physics.flow.signed_flow_array`,
+reverse
 flow included), L the seal leak (ISO 6358 with b = 0), r(u) the effective open fraction of a
 valve at commanded duty u (the PWM curve) and midpoint values p_k, V_k over each sample. Windows
 of whole PWM periods make the on/off ripple of the valves cancel at the window ends. Position
@@ -27,7 +28,7 @@ opening of every valve in every sample is computed as the rig switches it, and C
 refitted on it. On closed-loop logs this took C from 15-50 % off to within 3 %
 (benchmarks/fleet.py); on the identification run it changes C by 0.3 % and gives the delays to
 about 0.1 ms. The PWM curves then follow from the timings
-(:func:`~pneutune.control.valves.effective_open_fraction`).
+(:func:`~pneutune.control.physics.pwm.effective_open_fraction`).
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
-from pneutune.control.flow import signed_flow_array
-from pneutune.control.valves import effective_open_fraction
+from pneutune.control.physics.flow import signed_flow_array
+from pneutune.control.physics.pwm import effective_open_fraction
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError

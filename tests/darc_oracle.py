@@ -1,7 +1,7 @@
 """Plain-Python reading of the paper's equations: the test oracle of the compiled DARC step.
 
 Written from the paper (Eqs. 4, 6-13, 17, 20, 26, 29, 32-36) and docs/controller.md, not from
-control/darc.py: it reads the validated ControllerConfig (not the packed vector), uses numpy
+control/law/darc.py: it reads the validated ControllerConfig (not the packed vector), uses numpy
 matrix algebra for the Kalman filters, Python loops elsewhere, and its own Eq. (7) flow (without
 the plant's regularisation within 0.1 % of p_d = p_u, so tests keep pressures away from it).
 Used only by tests/test_darc_step.py.
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pneutune.control.constants import RHO0, T_REF
-from pneutune.control.controller_config import ControllerConfig
+from pneutune.control.contracts.controller import ControllerConfig
 
 
 def s_f(v: float) -> float:

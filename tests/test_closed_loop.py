@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.closed_loop import simulate_scenario
-from pneutune.control.controller_config import load_controller
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.scenarios import GROUPS, SCENARIOS, smooth_square
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, smooth_square
 
 PAPER_YAML = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 P0 = PlantConfig().rig.p0
@@ -115,7 +115,7 @@ def test_groups_cover_table1():
 def test_cli_json_is_one_object_and_reproducible(tmp_path):
     """`simulate --controller --scenario --json` prints exactly one JSON object with the metrics
     of DESIGN.md, and a seeded run gives the same numbers in another process."""
-    cmd = [sys.executable, "-m", "pneutune.control.simulate_cli", "--controller",
+    cmd = [sys.executable, "-m", "pneutune.control.cli.simulate", "--controller",
            str(PAPER_YAML), "--scenario", "sine-0.75hz", "--seed", "4", "--json"]
     outs = [subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
             for _ in range(2)]
@@ -129,10 +129,10 @@ def test_cli_json_is_one_object_and_reproducible(tmp_path):
 
 def test_cli_writes_log_and_plots(tmp_path):
     """`--out` writes an MCAP log with the closed-loop topics; `--plots` writes the figures."""
-    from pneutune.control.runlog import read_run_log
+    from pneutune.control.logs.runlog import read_run_log
 
     out = tmp_path / "cl.mcap"
-    res = subprocess.run([sys.executable, "-m", "pneutune.control.simulate_cli", "--controller",
+    res = subprocess.run([sys.executable, "-m", "pneutune.control.cli.simulate", "--controller",
                           str(PAPER_YAML), "--scenario", "square-0.5hz", "--out", str(out),
                           "--plots", str(tmp_path / "figs")], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr

@@ -1,4 +1,4 @@
-"""The commissioning run (control/commissioning_run.py): a second excitation protocol, and its
+"""The commissioning run (control/rig/commissioning_run.py): a second excitation protocol, and its
 ``simulate --experiment commissioning`` command.
 
 The simulated checks run the protocol on the paper's rig (the default plant). Their tolerances
@@ -15,19 +15,19 @@ import json
 import numpy as np
 import pytest
 
-from pneutune.control.commissioning_run import (
+from pneutune.control.cli.simulate import main as simulate_main
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.errors import ExperimentError
+from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.rig.commissioning_run import (
     END_MARGIN,
     commissioning_protocol,
     simulate_commissioning,
     valve_staircases,
     velocity_moves,
 )
-from pneutune.control.errors import ExperimentError
-from pneutune.control.identification_run import run_protocol
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.rig import SimRig
-from pneutune.control.runlog import read_run_log
-from pneutune.control.simulate_cli import main as simulate_main
+from pneutune.control.rig.identification_run import run_protocol
+from pneutune.control.rig.simrig import SimRig
 from pneutune.identify.pipeline import identify
 
 PLANT = PlantConfig()

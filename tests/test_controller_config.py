@@ -11,7 +11,16 @@ import numpy as np
 import pytest
 import yaml
 
-from pneutune.control.controller_config import (
+from pneutune.control.contracts.controller import (
+    SCHEMA_PATH,
+    ControllerConfig,
+    load_controller,
+    save_controller,
+    schema_text,
+)
+from pneutune.control.errors import ConfigError
+from pneutune.control.law.kalman import motion_model
+from pneutune.control.law.layout import (
     CFG_GAMMA,
     CFG_K2,
     CFG_KM_A,
@@ -25,15 +34,8 @@ from pneutune.control.controller_config import (
     CFG_THETA_0,
     CFG_VALVE_C,
     CFG_VARIANT,
-    SCHEMA_PATH,
-    ControllerConfig,
-    load_controller,
     pack,
-    save_controller,
-    schema_text,
 )
-from pneutune.control.errors import ConfigError
-from pneutune.control.kalman import motion_model
 
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 
@@ -179,7 +181,7 @@ def test_duplicate_key_rejected(tmp_path: Path) -> None:
 
 def test_committed_schema_is_current() -> None:
     """control/schemas/controller.schema.json == the models' schema. Regenerate with
-    `python -m pneutune.control.controller_config`."""
+    `python -m pneutune.control.contracts.controller`."""
     assert SCHEMA_PATH.read_text(encoding="utf-8") == schema_text()
     schema = json.loads(schema_text())
     assert schema["additionalProperties"] is False

@@ -1,4 +1,4 @@
-"""The compiled DARC step (control/darc.py) against the plain-Python oracle of the paper's
+"""The compiled DARC step (control/law/darc.py) against the plain-Python oracle of the paper's
 equations (tests/darc_oracle.py), for every variant, and its documented behaviours."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from darc_oracle import DarcOracle, f_pd
 
-from pneutune.control.controller_config import CFG_LAYOUT, load_controller, pack
-from pneutune.control.darc import (
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.law.darc import (
     MEAS_SIZE,
     S_A_R_PREV,
     S_CASE,
@@ -27,6 +27,7 @@ from pneutune.control.darc import (
     step,
     step_into,
 )
+from pneutune.control.law.layout import CFG_LAYOUT, pack
 
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 VARIANTS = ("modified_darc", "original_darc", "direct_diff", "pid")

@@ -13,8 +13,8 @@ from typing import Any
 import pytest
 import yaml
 
-from pneutune.control.cli_common import run_cli
-from pneutune.control.deploy_cli import main
+from pneutune.control.cli.common import run_cli
+from pneutune.control.cli.deploy import main
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
@@ -129,7 +129,7 @@ def test_bad_config_via_the_command(tmp_path, case):
     """The same through the console command in a subprocess (no traceback, exit 2)."""
     _, edit, words = next(b for b in BAD if b[0] == case)
     path = _write(tmp_path, edit)
-    proc = subprocess.run([sys.executable, "-m", "pneutune.control.deploy_cli", str(path),
+    proc = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy", str(path),
                            "--log", str(tmp_path / "never.mcap")],
                           capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 2

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pneutune.control.constants import RHO0, T_REF
-from pneutune.control.duty import (
+from pneutune.control.law.duty import (
     CASE_A_FILL,
     CASE_A_FILL_NO_FLOW,
     CASE_B_FILL,
@@ -17,9 +17,8 @@ from pneutune.control.duty import (
     eq33_into,
     fully_open_q_l,
     pwm_inverse,
-    sample_pwm_curve,
 )
-from pneutune.control.valves import effective_open_fraction
+from pneutune.control.physics.pwm import effective_open_fraction, sample_pwm_curve
 
 # Sec. 5.1 rig values.
 A_A, A_B, P0, PS, T0, N, R = 7.854e-3, 7.54e-3, 101325.0, 6.0e5, 283.15, 1.2, 287.0

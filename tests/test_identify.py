@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from pneutune.control.constants import VALVES
-from pneutune.control.identification_run import DEFAULT_DUTIES, simulate_identification
-from pneutune.control.model_config import load_model, save_model
-from pneutune.control.plant_config import PlantConfig
-from pneutune.identify.motion import smooth_sign
+from pneutune.control.contracts.model import load_model, save_model
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.physics.friction import smooth_sign_array as smooth_sign
+from pneutune.control.rig.identification_run import DEFAULT_DUTIES, simulate_identification
 from pneutune.identify.pipeline import identify
 
 VALVE_NAMES = list(VALVES)

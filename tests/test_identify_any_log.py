@@ -14,15 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.closed_loop import simulate_scenario
-from pneutune.control.commissioning_run import simulate_commissioning
 from pneutune.control.constants import VALVES
-from pneutune.control.controller_config import load_controller
-from pneutune.control.model_box import uncertainty_box
-from pneutune.control.plant_config import PlantConfig, RigConfig
-from pneutune.control.runlog import read_run_log
-from pneutune.control.scenarios import SCENARIOS
-from pneutune.control.valves import effective_open_fraction
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.plant import PlantConfig, RigConfig
+from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.physics.pwm import effective_open_fraction
+from pneutune.control.rig.commissioning_run import simulate_commissioning
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.model_box import uncertainty_box
+from pneutune.control.sim.scenarios import SCENARIOS
 from pneutune.identify.mass_prior import geometric_mass, mass_prior
 from pneutune.identify.pipeline import identify
 from pneutune.identify.valve_timing import OpenFractions, Timing
@@ -142,7 +142,8 @@ def test_cross_check_moves_in_an_end_the_log_rules_out(tmp_path):
     is moved in toward nominal, the truth stays inside, and an end the log supports (the truth
     model's ±20 % on b_v, not checked) is kept. The rule: NRMSE within FACTOR x the best fit's
     plus FLOOR (identify/crosscheck.py)."""
-    from pneutune.control.model_config import ModelConfig, model_from_plant
+    from pneutune.control.contracts.model import ModelConfig
+    from pneutune.control.sim.truth import model_from_plant
     from pneutune.identify.crosscheck import FACTOR, cross_check, narrowed_model
     from pneutune.identify.dataset import load_dataset
 

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.model_config import load_model
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.runlog import RunLogWriter, read_run_log
+from pneutune.control.contracts.model import load_model
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.logs.runlog import RunLogWriter, read_run_log
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "data" / "run.mcap"
@@ -93,7 +93,7 @@ def test_time_backwards(tmp_path, source):
     writer here (another tool's log)."""
     from mcap.writer import Writer
 
-    from pneutune.control.runlog import TOPIC_SCHEMAS
+    from pneutune.control.logs.runlog import TOPIC_SCHEMAS
 
     bad = tmp_path / "back.mcap"
     with open(bad, "wb") as fh:
@@ -191,7 +191,7 @@ def test_closed_loop_log_without_labels_or_truth(tmp_path):
     /rig/sensors, /rig/valves and the rig metadata. identify must run, write a model that
     validates, and say in its notes what the log cannot separate."""
     full = tmp_path / "deploy.mcap"
-    res = subprocess.run([sys.executable, "-m", "pneutune.control.deploy_cli", str(PAPER),
+    res = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy", str(PAPER),
                           "--scenario", "sine-0.75hz", "--log", str(full), "--seed", "3"],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr

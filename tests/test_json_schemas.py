@@ -9,9 +9,9 @@ import jsonschema
 import pytest
 import yaml
 
-from pneutune.control.json_schemas import json_schema, schema_path, schema_text
-from pneutune.control.model_config import model_from_plant
-from pneutune.control.plant_config import PlantConfig
+from pneutune.control.contracts.json_schemas import json_schema, schema_path, schema_text
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize("name", ["plant", "model", "controller"])
 def test_committed_schema_is_current(name):
     """control/schemas/<name>.schema.json equals the pydantic models' schema (regenerate with
-    `python -m pneutune.control.json_schemas`)."""
+    `python -m pneutune.control.contracts.json_schemas`)."""
     assert schema_path(name).read_text(encoding="utf-8") == schema_text(name)
 
 

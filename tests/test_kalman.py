@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pneutune.control.kalman import (
+from pneutune.control.law.kalman import (
     KalmanFilter,
     force_model,
     kf_predict,

@@ -12,16 +12,16 @@ import sys
 import numpy as np
 import pytest
 
+from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError
-from pneutune.control.identification_run import (
+from pneutune.control.rig.identification_run import (
     IDENT_SAMPLE_PERIOD,
     Segment,
     run_protocol,
     samples_per_control,
     simulate_identification,
 )
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.rig import SimRig
+from pneutune.control.rig.simrig import SimRig
 from pneutune.identify.dataset import load_dataset
 from pneutune.identify.mass import lag_filter, sliding_windows
 from pneutune.identify.pipeline import identify

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.runlog import TOPIC_SCHEMAS, RunLogWriter
+from pneutune.control.logs.runlog import TOPIC_SCHEMAS, RunLogWriter
 
 REPO = Path(__file__).resolve().parents[1]
 NODE_DIR = REPO / ".cache" / "node"

@@ -21,12 +21,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
-from pneutune.control import plant
 from pneutune.control.constants import A_IN, A_OUT, B_IN, B_OUT, RHO0, T_REF
-from pneutune.control.flow import LIN_WIDTH, iso6358_flow, signed_flow
-from pneutune.control.identification_run import position_loop
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.plant_params import (
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.physics.flow import LIN_WIDTH, iso6358_flow, signed_flow
+from pneutune.control.physics.pwm import effective_open_fraction
+from pneutune.control.plant import dynamics as plant
+from pneutune.control.plant.params import (
     S_OPEN,
     S_PA,
     S_PB,
@@ -36,8 +36,8 @@ from pneutune.control.plant_params import (
     PlantParams,
     pack_plant,
 )
-from pneutune.control.rig import SimRig
-from pneutune.control.valves import effective_open_fraction
+from pneutune.control.rig.identification_run import position_loop
+from pneutune.control.rig.simrig import SimRig
 
 #: Sensors without noise or quantisation: readings equal the true state.
 QUIET = {"sensors": {"x_noise": 0.0, "x_step": 0.0, "p_noise": 0.0}}
@@ -374,7 +374,7 @@ def test_a_slow_move_sticks_alike_at_any_step_size() -> None:
     flipped the friction and pushed v back: the stop was missed and the piston crept with v
     changing sign every step (stuck 78 % of the +2 mm/s move at 0.4 ms, 30 % at 0.1 ms, none at
     25 us; ∫v dt 20.7 mm for 16.1 mm travelled at 5 mm/s)."""
-    from pneutune.control.commissioning_run import simulate_commissioning
+    from pneutune.control.rig.commissioning_run import simulate_commissioning
 
     results = []
     for dt in (4.0e-4, 5.0e-5):

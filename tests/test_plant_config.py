@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ConfigError
-from pneutune.control.plant_config import PlantConfig, load_plant
 
 SIMULATE = Path(sys.executable).with_name("simulate")
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pneutune.control import plant
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.plant_params import P_DOFF, P_DON, P_M, pack_plant
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.plant import dynamics as plant
+from pneutune.control.plant.params import P_DOFF, P_DON, P_M, pack_plant
 from pneutune.identify.prediction import position_innovations, pressure_residuals
 
 TS = 0.004

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pneutune.control.projection import (
+from pneutune.control.law.projection import (
     adapt_step_into,
     adaptation_rate,
     adaptation_rate_into,

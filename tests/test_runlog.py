@@ -34,8 +34,8 @@ from pneutune.control.errors import (
     TimeOrderError,
     TruncatedLogError,
 )
-from pneutune.control.mcap_json import JsonDecoderFactory, decode_json, encode_json
-from pneutune.control.runlog import (  # _bulk_numeric, _SPEC: white-box speed guard
+from pneutune.control.logs.mcap_json import JsonDecoderFactory, decode_json, encode_json
+from pneutune.control.logs.runlog import (
     _SPEC,
     MCAP_MAGIC,
     TOPIC_SCHEMAS,

@@ -14,17 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.closed_loop import simulate_scenario
+from pneutune.control.cli.deploy import main
+from pneutune.control.cli.summary import summary_markdown, write_summary
 from pneutune.control.constants import RIG_KEYS
-from pneutune.control.controller_config import load_controller
-from pneutune.control.deploy_cli import main
-from pneutune.control.driver import PROTOCOL, DeploySimRig, PipeRig, RigIOError, serve
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.runlog import read_run_log
-from pneutune.control.runtime import run_scenario, sim_rig_for
-from pneutune.control.scenarios import SCENARIOS
-from pneutune.control.summary import summary_markdown, write_summary
-from pneutune.control.supervisor import FAIL_SAFE_DUTIES
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.rig.pipe import PROTOCOL, DeploySimRig, PipeRig, RigIOError, serve
+from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import SCENARIOS
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
@@ -175,7 +175,7 @@ def test_realtime_pacing(paper):
 
 def test_cli_json_in_a_subprocess(tmp_path):
     """The console command: one JSON object on stdout, exit 0, the log at --log."""
-    proc = subprocess.run([sys.executable, "-m", "pneutune.control.deploy_cli",
+    proc = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy",
                            str(PAPER_YAML), "--duration", "1", "--json", "--log",
                            str(tmp_path / "c.mcap")],
                           capture_output=True, text=True, timeout=120, check=False)
@@ -219,7 +219,7 @@ def test_deploy_plots_write_the_figures(tmp_path):
     import sys
 
     paper = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
-    res = subprocess.run([sys.executable, "-m", "pneutune.control.deploy_cli", str(paper),
+    res = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy", str(paper),
                           "--scenario", "sine-0.75hz", "--duration", "3", "--log",
                           str(tmp_path / "d.mcap"), "--plots", str(tmp_path / "figs")],
                          capture_output=True, text=True, timeout=300)

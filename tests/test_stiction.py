@@ -4,7 +4,7 @@ The truth is the F_S of the plant each log was simulated from (plant.yaml, contr
 logs are read back through MCAP like a user's (contract 1), never with /sim/truth or the
 segment labels. Two plants with different stiction ratios F_S/F_C:
 
-* the paper's rig with the project's defaults (control/plant_config.py): F_S = 75 N,
+* the paper's rig with the project's defaults (control/contracts/plant.py): F_S = 75 N,
   F_C = 50 N (1.5), 5 um / 300 Pa sensor noise;
 * a heavier, lightly damped one with a small stiction excess and noisy pressures: F_S = 120 N,
   F_C = 100 N (1.2), Stribeck exponent 1, b_v = 1500 N s/m, 0.75 kg payload, 600 Pa.
@@ -20,18 +20,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.closed_loop import simulate_scenario
-from pneutune.control.commissioning_run import simulate_commissioning
-from pneutune.control.controller_config import load_controller
-from pneutune.control.identification_run import (
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.rig.commissioning_run import simulate_commissioning
+from pneutune.control.rig.identification_run import (
     Segment,
     run_protocol,
     simulate_identification,
     valve_duties,
 )
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.rig import SimRig
-from pneutune.control.scenarios import SCENARIOS
+from pneutune.control.rig.simrig import SimRig
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import SCENARIOS
 from pneutune.identify import stiction
 from pneutune.identify.dataset import Dataset, load_dataset
 from pneutune.identify.stiction import (

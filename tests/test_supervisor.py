@@ -13,18 +13,18 @@ import numpy as np
 import pytest
 import yaml
 
-from pneutune.control.controller_config import ControllerConfig, load_controller
-from pneutune.control.faults import Fault, FaultySimRig
-from pneutune.control.plant_params import S_X
-from pneutune.control.runlog import read_run_log
-from pneutune.control.runtime import run_scenario, sim_rig_for
-from pneutune.control.scenarios import SCENARIOS
-from pneutune.control.supervisor import (
+from pneutune.control.contracts.controller import ControllerConfig, load_controller
+from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.plant.params import S_X
+from pneutune.control.rig.faults import Fault, FaultySimRig
+from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+from pneutune.control.rig.supervisor import (
     EXHAUST_DUTIES,
     FAIL_SAFE_DUTIES,
     Supervisor,
     SupervisorSettings,
 )
+from pneutune.control.sim.scenarios import SCENARIOS
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
@@ -287,7 +287,7 @@ def test_cli_fault_exits_3(tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text(yaml.safe_dump(data), encoding="utf-8")
     log = tmp_path / "f.mcap"
-    proc = subprocess.run([sys.executable, "-m", "pneutune.control.deploy_cli", str(cfg),
+    proc = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy", str(cfg),
                            "--duration", "2", "--log", str(log)],
                           capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 3, proc.stderr

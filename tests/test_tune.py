@@ -18,15 +18,15 @@ import optuna
 import pytest
 from tune_helpers import QUICK, load_study, only_study_name, write_truth_model
 
-from pneutune.control.cli_common import run_cli
-from pneutune.control.closed_loop import Metrics, simulate_scenario
-from pneutune.control.controller_config import ProvenanceConfig, load_controller
-from pneutune.control.kalman import motion_model, process_cov, steady_state_gain
-from pneutune.control.model_config import model_from_plant
-from pneutune.control.plant_config import PlantConfig, load_plant
-from pneutune.control.scenarios import SCENARIOS
-from pneutune.control.simulate_cli import main as simulate_main
-from pneutune.control.yamlio import load_yaml_mapping, write_yaml
+from pneutune.control.cli.common import run_cli
+from pneutune.control.cli.simulate import main as simulate_main
+from pneutune.control.contracts.controller import ProvenanceConfig, load_controller
+from pneutune.control.contracts.plant import PlantConfig, load_plant
+from pneutune.control.contracts.yamlio import load_yaml_mapping, write_yaml
+from pneutune.control.law.kalman import motion_model, process_cov, steady_state_gain
+from pneutune.control.sim.closed_loop import Metrics, simulate_scenario
+from pneutune.control.sim.scenarios import SCENARIOS
+from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune import cli
 from pneutune.tune.objective import (
     DEFAULT_SCENARIOS,

@@ -15,9 +15,10 @@ from typing import Any
 import pytest
 from tune_helpers import QUICK, load_study, run_tune
 
-from pneutune.control.controller_config import load_controller
-from pneutune.control.model_config import ModelConfig, model_from_plant, save_model
-from pneutune.control.plant_config import PlantConfig
+from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.model import ModelConfig, save_model
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune.feasibility import InfeasibleModelError, check_feasibility
 from pneutune.tune.objective import ObjectiveSettings
 from pneutune.tune.plants import draw_plants, uncertainty_box

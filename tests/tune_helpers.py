@@ -11,8 +11,9 @@ from typing import Any
 
 import optuna
 
-from pneutune.control.model_config import model_from_plant, save_model
-from pneutune.control.plant_config import PlantConfig
+from pneutune.control.contracts.model import save_model
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
 
 #: Quick objective settings for CLI tests: one scenario, two plants, 4 s runs (~10 ms a trial),
 #: the draws in the tune process itself (no draw processes to start).

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import hashlib
 import os
 import sys
 from collections.abc import Sequence
@@ -14,20 +13,22 @@ from typing import Any
 
 from tqdm import tqdm
 
-from pneutune.control.cli_common import info, make_parser, print_json, run_cli
-from pneutune.control.controller_config import (
+from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.contracts.atomic import sha256_file
+from pneutune.control.contracts.controller import (
+    PAPER_CONTROLLER,
     ProvenanceConfig,
     load_controller,
     save_controller,
 )
+from pneutune.control.contracts.model import load_model
+from pneutune.control.contracts.yamlio import write_yaml
 from pneutune.control.errors import ConfigError
-from pneutune.control.model_config import load_model
-from pneutune.control.scenarios import GROUPS, SCENARIOS
-from pneutune.control.yamlio import write_yaml
+from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
 from .feasibility import InfeasibleModelError, check_feasibility
 from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError, TuneObjective
-from .report import PAPER_CONTROLLER, compare, write_report
+from .report import compare, write_report
 from .space import controller_from_params, search_space
 from .study import (
     DEFAULT_JOURNAL,
@@ -71,14 +72,6 @@ controller.yaml, report.md, history.png, importance.png, plant-nominal.yaml, pla
 (`simulate --controller DIR/controller.yaml --plant DIR/plant-nominal.yaml --scenario all`
 repeats the objective's nominal runs).
 """
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _version() -> str:
@@ -189,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           "(`identify LOG.mcap` writes reports/identify/model.yaml) or pass "
                           "--model M.yaml")
     model = load_model(model_path)
-    model_sha = _sha256(model_path)
+    model_sha = sha256_file(model_path)
     try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
         controller_from_params(model, search_space(model).paper_params())
     except ConfigError as exc:
@@ -237,8 +230,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     prov = provenance(model_sha, study_name, best.number, float(best.value), args.seed,
                       feas.notes())
     tuned = controller_from_params(model, best.params, prov)
-    paper_path = PAPER_CONTROLLER if PAPER_CONTROLLER.is_file() else Path(
-        "data/controller-paper.yaml")
+    paper_path = PAPER_CONTROLLER
     paper = load_controller(paper_path)
 
     objective = TuneObjective(model, args.seed, settings)

@@ -34,18 +34,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pneutune.control.closed_loop import (
+from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.errors import PneutuneError
+from pneutune.control.law.layout import pack
+from pneutune.control.sim.closed_loop import (
     STATUS_ABORTED,
     STATUS_UNSTABLE,
     scenario_plant,
     simulate_scenario,
 )
-from pneutune.control.controller_config import ControllerConfig, pack
-from pneutune.control.errors import PneutuneError
-from pneutune.control.model_box import Coordinate, plant_from_values, uncertainty_box
-from pneutune.control.model_config import ModelConfig
-from pneutune.control.plant_config import PlantConfig
-from pneutune.control.scenarios import Scenario
+from pneutune.control.sim.model_box import Coordinate, plant_from_values, uncertainty_box
+from pneutune.control.sim.scenarios import Scenario
 
 from .objective import Evaluation, ObjectiveSettings, TuneObjective
 from .plants import PlantDraw

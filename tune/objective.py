@@ -3,7 +3,7 @@
 For a candidate controller and every scenario s (default: the four Table-1 scenarios, then
 ``disturbance-0.5hz``) and plant draw d (:func:`pneutune.tune.plants.draw_plants`; the same
 draws for every trial -- common random numbers, so trials are compared on the same plants and
-the same sensor noise), one run of :func:`pneutune.control.closed_loop.simulate_scenario` gives
+the same sensor noise), one run of :func:`pneutune.control.sim.closed_loop.simulate_scenario` gives
 the paper's indices and the run's health. Its cost, dimensionless::
 
     c(s, d) = ½ (E_p / E_p* + E_rms / E_rms*)            tracking, * = the paper's Table 1
@@ -46,16 +46,17 @@ from typing import Any
 import numpy as np
 import optuna
 
-from pneutune.control.closed_loop import (
+from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.errors import PneutuneError
+from pneutune.control.law.layout import pack
+from pneutune.control.sim.closed_loop import (
     ClosedLoopResult,
     Metrics,
     scenario_plant,
     simulate_scenario,
 )
-from pneutune.control.controller_config import ControllerConfig, pack
-from pneutune.control.errors import PneutuneError
-from pneutune.control.model_config import ModelConfig
-from pneutune.control.scenarios import GROUPS, SCENARIOS, Scenario, resolve_scenarios
+from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, Scenario, resolve_scenarios
 
 from .plants import PlantDraw, draw_plants
 from .space import SearchSpace, controller_from_params, search_space

@@ -14,7 +14,7 @@ Draws (``draw_plants``), all sharing the nominal's rig, delays, leak and sensors
   (the one an aggressive gain set destabilises);
 * draws 3.. (``lhs-k``): a scrambled Latin hypercube over the whole box (uniform per coordinate).
 
-The box of each coordinate and the nominal plant: :mod:`pneutune.control.model_box`.
+The box of each coordinate and the nominal plant: :mod:`pneutune.control.sim.model_box`.
 
 Each draw carries its own sensor-noise seed in ``sim.seed``: draw 0 uses the study seed itself
 (so ``simulate --plant plant-nominal.yaml`` or ``--seed S`` repeats the objective's nominal runs),
@@ -29,15 +29,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import qmc
 
-from pneutune.control.model_box import (
+from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.model_box import (
     Coordinate,
     corner,
     nominal_plant,
     plant_from_values,
     uncertainty_box,
 )
-from pneutune.control.model_config import ModelConfig
-from pneutune.control.plant_config import PlantConfig
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ noise; every run, no early stop), and compared on the nominal plant (draw 0) and
 draw (the draw where the tuned controller's mean cost over the scenarios is highest). Plots:
 the optimisation history (complete trials, best so far, pruned trials at their last reported
 value) and the parameter importances by Optuna's PED-ANOVA evaluator (no plotly, no sklearn).
-Images are written atomically (``control/atomic.py``) with matplotlib's Agg backend.
+Images are written atomically (``control/contracts/atomic.py``) with matplotlib's Agg backend.
 """
 
 from __future__ import annotations
@@ -16,24 +16,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 import optuna
+from matplotlib.figure import Figure
 from optuna.trial import FrozenTrial, TrialState
 
-from pneutune.control.atomic import atomic_write_text
-from pneutune.control.controller_config import ControllerConfig
-from pneutune.control.plots import save_figure
-from pneutune.control.simulate_cli import format_table
+from pneutune.control.cli.common import format_table
+from pneutune.control.contracts.atomic import atomic_write_text, save_figure
+from pneutune.control.contracts.controller import ControllerConfig
 
 from .objective import FAIL_VALUE, Evaluation, TuneObjective
 from .space import params_from_controller
-
-#: Where the paper's controller lives in the repository.
-PAPER_CONTROLLER: Path = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 
 
 @dataclass
@@ -80,7 +73,8 @@ def compare(objective: TuneObjective, tuned: ControllerConfig,
 def plot_history(study: optuna.Study, path: Path) -> Path:
     """Objective of each trial and the best so far (PNG)."""
     trials = study.get_trials(deepcopy=False)
-    fig, ax = plt.subplots(figsize=(8, 4))
+    fig = Figure(figsize=(8, 4))
+    ax = fig.subplots()
     done = [t for t in trials if t.state == TrialState.COMPLETE]
     pruned = [(t.number, t.intermediate_values[max(t.intermediate_values)])
               for t in trials if t.state == TrialState.PRUNED and t.intermediate_values]
@@ -121,7 +115,8 @@ def importances(study: optuna.Study) -> dict[str, float] | None:
 
 def plot_importance(imp: dict[str, float] | None, path: Path) -> Path:
     """Horizontal bar chart of the importances (PNG)."""
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.subplots()
     if imp:
         names = list(imp)[::-1]
         ax.barh(names, [imp[n] for n in names], color="C0")
@@ -299,5 +294,5 @@ def write_report(out_dir: str | os.PathLike[str], objective: TuneObjective,
     return path
 
 
-__all__ = ["PAPER_CONTROLLER", "Comparison", "compare", "importances", "plot_history",
+__all__ = ["Comparison", "compare", "importances", "plot_history",
            "plot_importance", "render", "write_report"]

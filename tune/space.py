@@ -6,7 +6,7 @@ What is searched (14 parameters, named by their controller.yaml key path; docs/t
 * ``gains.h2``, ``gains.h3`` with ``eps2``/``eps3`` fixed at the paper's 0.05 and 250 (Sec. 5.1).
   With constant h (DESIGN.md) the robust terms of Eqs. (20) and (29) are
   ``-h2² e2 / (4 ε2)`` and ``-h3² e3 / (4 ε3)``: h and ε enter the law only through h²/ε
-  (``control/darc.py``), so searching both would add a dimension with no effect. We search h and
+  (``control/law/darc.py``), so searching both would add a dimension with no effect. We search h and
   keep ε, the boundary-layer size of Eqs. (19)/(28), at the paper's value so that the guaranteed
   bound ε = r2 ε2 + r3 ε3 of Eq. (30) keeps its meaning. (κ2 = k2 + h2²/(4ε2) is the total e2
   gain; k2 and h2 are therefore partly redundant, which the multivariate TPE sampler handles --
@@ -35,9 +35,9 @@ from typing import Any
 import optuna
 
 from pneutune.control.constants import CONTROLLER_SCHEMA, THETA_NAMES
-from pneutune.control.controller_config import ControllerConfig
-from pneutune.control.model_config import ModelConfig
-from pneutune.control.yamlio import validate_model
+from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.contracts.yamlio import validate_model
 
 #: The paper's Sec. 5.1 values that ``tune`` keeps fixed.
 PAPER_EPS2: float = 0.05

@@ -53,8 +53,8 @@ import numpy as np
 import optuna
 from optuna.trial import TrialState
 
+from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.errors import PneutuneError
-from pneutune.control.model_config import ModelConfig
 
 from .objective import ObjectiveSettings, TuneObjective
 from .space import search_space

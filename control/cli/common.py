@@ -1,0 +1,104 @@
+"""Shared command-line plumbing: one ``error:`` line and exit 2 for bad input, JSON output.
+
+Exit status: 0 done; 2 bad input (one line ``error: ...`` on stderr, no traceback); 1 an
+internal failure (traceback on stderr); 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
+
+import numpy as np
+
+from pneutune.control.contracts.atomic import sha256_file
+from pneutune.control.errors import PneutuneError
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with the project's error format: one ``error:`` line, exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+        raise SystemExit(2)
+
+
+def make_parser(prog: str, description: str, epilog: str = "") -> ArgumentParser:
+    """A parser whose help keeps the formatting of ``description`` and ``epilog``."""
+    return ArgumentParser(prog=prog, description=description, epilog=epilog,
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def print_json(obj: Any) -> None:
+    """Print exactly one JSON object on stdout (non-finite numbers become null)."""
+    sys.stdout.write(json.dumps(_jsonable(obj), allow_nan=False) + "\n")
+    sys.stdout.flush()
+
+
+def info(message: str) -> None:
+    """Prose for the user: always on stderr, so stdout stays clean for --json."""
+    sys.stderr.write(message + "\n")
+
+
+def run_cli(main: Callable[[Sequence[str] | None], int | None],
+            argv: Sequence[str] | None = None) -> NoReturn:
+    """Run a command's ``main`` and turn its failures into the exit-status contract."""
+    try:
+        code = main(argv)
+    except PneutuneError as exc:
+        sys.stderr.write(f"error: {exc}\n")
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        sys.stderr.write("error: interrupted\n")
+        raise SystemExit(130) from None
+    except SystemExit:
+        raise
+    except Exception:  # an internal failure: show everything
+        traceback.print_exc()
+        sys.stderr.write("error: internal failure (a bug in pneutune; the traceback is above)\n")
+        raise SystemExit(1) from None
+    raise SystemExit(0 if code is None else int(code))
+
+
+def plant_meta(plant: str | None) -> dict[str, str]:
+    """The plant as ``run`` metadata: the path as given and its content hash (not the absolute
+    path, so that the same plant gives the same log bytes wherever it lies)."""
+    if plant is None:
+        return {"plant": "<defaults>"}
+    return {"plant": plant, "plant_sha256": sha256_file(plant)}
+
+
+def format_table(rows: list[tuple[str, dict[str, Any], tuple[float, float] | None]],
+                 title: str) -> str:
+    """A text table of the metrics beside the paper's Table 1 (rig) figures."""
+    head = (f"{'scenario':<19}{'E_p [mm]':>9}{'E_rms [mm]':>11}{'paper E_p':>10}"
+            f"{'paper E_rms':>12}{'switch/s':>9}{'p_a max':>9}{'p_b max':>9}  status")
+    lines = [title, head, "-" * len(head)]
+    for name, m, paper in rows:
+        pe = f"{paper[0]:.2f}" if paper else "-"
+        pr = f"{paper[1]:.2f}" if paper else "-"
+        lines.append(f"{name:<19}{m['E_p_mm']:>9.3f}{m['E_rms_mm']:>11.3f}{pe:>10}{pr:>12}"
+                     f"{m['switches_per_s']:>9.1f}{m['p_a_max_Pa'] / 1e5:>8.2f}b"
+                     f"{m['p_b_max_Pa'] / 1e5:>8.2f}b  {m['status']}"
+                     f"{'' if m['theta_in_bounds'] else ' (theta out of bounds!)'}")
+    lines.append("paper: Table 1 of Qian et al. (2014), measured on their rig; the rest is "
+                 "this simulation.")
+    return "\n".join(lines)

@@ -1,0 +1,258 @@
+"""``deploy``: load a controller.yaml into the runtime and run it against a rig, supervised."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from pneutune.control.cli.common import (
+    format_table,
+    info,
+    make_parser,
+    plant_meta,
+    print_json,
+    run_cli,
+)
+from pneutune.control.contracts.atomic import sha256_file
+from pneutune.control.contracts.controller import ControllerConfig, load_controller
+from pneutune.control.contracts.plant import load_plant
+from pneutune.control.errors import ConfigError, ExperimentError
+from pneutune.control.law.layout import pack
+from pneutune.control.rig.supervisor import FAIL_SAFE_MODES
+
+#: Exit status of a run stopped by a supervisor fault.
+EXIT_FAULT = 3
+#: Where logs go by default: ``<DEFAULT_LOG_DIR>/<scenario>.mcap``.
+DEFAULT_LOG_DIR = Path("reports") / "deploy"
+#: Rig kinds of ``--rig``.
+RIG_KINDS: tuple[str, ...] = ("sim", "pipe-sim")
+#: Relative tolerance of the Ts and pwm_hz comparison between controller and rig.
+RIG_MATCH_RTOL = 1.0e-9
+
+DESCRIPTION = """\
+Load a controller.yaml (contract 4, as `tune` writes it) into the controller runtime and run it
+against a rig, under the safety supervisor; write the run as an MCAP log (contract 1:
+/rig/sensors, /rig/valves, /control/reference, /control/state, /rig/events, rig metadata) that
+`identify` accepts, and print the paper's indices beside its Table 1.
+
+Loading is strict and nothing runs on an invalid config: an unknown key, a wrong type, a value
+out of range, theta_min >= theta_max, or a rig.Ts / rig.pwm_hz that differs from the rig's each
+give one `error:` line naming the file and the key, and exit status 2.
+
+The runtime calls the same compiled control step as `simulate` every Ts. On the simulated rig
+with the same plant and seed, `deploy` gives exactly the figures of `simulate --controller`.
+
+Rigs (--rig):
+  sim[:P.yaml]        the simulated rig in this process (plant.yaml merged over the paper's rig)
+  pipe-sim[:P.yaml]   the same rig in a child process, over the example driver's pipe protocol
+                      (pneutune/control/rig/pipe.py; the interface a hardware driver implements)
+
+Safety supervisor (docs/deploy.md): a sensor reading NaN, stale or out of range, the supply
+lost, the position outside limits.x_min/x_max, or a chamber above limits.p_max: in that very
+sample the valves go to the fail-safe state (all closed, holding the piston; --fail-safe
+exhaust vents both chambers instead), the event is logged on /rig/events and deploy exits 3.
+Warnings (logged, the run goes on): the supply 1 bar away from the model's, or theta-hat of the
+mass or friction held on its bound: run identify again.
+
+Exit status: 0 done (warnings allowed); 2 bad input (nothing ran); 3 a supervisor fault stopped
+the run (log written, `error:` line on stderr); 1 an internal failure.
+"""
+
+EPILOG = """\
+examples:
+  deploy data/controller-paper.yaml
+  deploy reports/tune/controller.yaml --scenario all --json
+  deploy data/controller-paper.yaml --scenario table1 --rig sim:my-plant.yaml --seed 3
+  deploy data/controller-paper.yaml --scenario sine-0.75hz --realtime --log /tmp/run.mcap
+  deploy data/controller-paper.yaml --rig pipe-sim --duration 2
+  identify reports/deploy/sine-0.5hz.mcap         # close the loop: log -> identify -> tune
+
+scenarios: sine-0.5hz (default), sine-0.75hz, sine-0.5hz-heavy, square-0.5hz,
+disturbance-0.5hz; table1 = the first four; all = all five. Several scenarios write
+F-<scenario>.mcap for --log F.mcap, or reports/deploy/<scenario>.mcap by default; a fault
+stops the remaining scenarios.
+"""
+
+
+def parse_rig(spec: str) -> tuple[str, str | None]:
+    """Split a ``--rig`` value into (kind, plant path or None).
+
+    Raises
+    ------
+    ExperimentError
+        An unknown kind or an empty path.
+    """
+    kind, sep, path = spec.partition(":")
+    if kind not in RIG_KINDS:
+        raise ExperimentError(f"--rig: unknown rig {kind!r}; expected sim[:P.yaml] or "
+                              f"pipe-sim[:P.yaml]")
+    if sep and not path:
+        raise ExperimentError(f"--rig {spec!r}: the plant path after ':' is empty")
+    return kind, (path or None)
+
+
+def check_rig_compatible(controller: ControllerConfig, rig_meta: dict[str, Any],
+                         controller_file: str, rig_source: str) -> None:
+    """The controller's ``rig.Ts`` and ``rig.pwm_hz`` must equal the rig's.
+
+    The control law's discrete filters and the PWM inverse are designed for one sampling
+    period and one PWM frequency; another rig's timing makes them wrong without any sign.
+
+    Raises
+    ------
+    ConfigError
+        Naming the controller file, the key (``rig.Ts`` or ``rig.pwm_hz``), both values and
+        where the rig's came from.
+    """
+    for key, unit in (("Ts", "s"), ("pwm_hz", "Hz")):
+        mine = float(getattr(controller.rig, key))
+        theirs = float(rig_meta[key])
+        if not math.isclose(mine, theirs, rel_tol=RIG_MATCH_RTOL, abs_tol=0.0):
+            raise ConfigError(controller_file, f"rig.{key}",
+                              f"must equal the rig's {key} = {theirs!r} {unit} ({rig_source}), "
+                              f"got {mine!r} {unit}")
+
+
+def _log_path(log: str | None, scenario: str, several: bool) -> Path:
+    if log is None:
+        return DEFAULT_LOG_DIR / f"{scenario}.mcap"
+    p = Path(log)
+    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p
+
+
+def _timing_line(name: str, timing: dict[str, Any]) -> str:
+    line = (f"{name}: step p50/p99 {timing['step_p50_us']:.1f}/{timing['step_p99_us']:.1f} µs, "
+            f"sensor-to-valve p50/p99 {timing['loop_p50_us']:.1f}/{timing['loop_p99_us']:.1f} µs")
+    if timing["realtime"]:
+        line += (f"; realtime: {timing['overruns']} overruns, jitter p50/p99/max "
+                 f"{timing['jitter_p50_us']:.0f}/{timing['jitter_p99_us']:.0f}/"
+                 f"{timing['jitter_max_us']:.0f} µs")
+    return line
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``deploy``; returns the exit status (0, 3; 2 via PneutuneError)."""
+    from pneutune.control.rig.pipe import PipeRig
+    from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+    from pneutune.control.rig.supervisor import Supervisor, SupervisorSettings
+    from pneutune.control.sim.scenarios import resolve_scenarios
+
+    parser = make_parser("deploy", DESCRIPTION, EPILOG)
+    parser.add_argument("controller", metavar="C.yaml", help="controller.yaml (contract 4)")
+    parser.add_argument("--rig", default="sim", metavar="RIG",
+                        help="sim[:P.yaml] (default sim) or pipe-sim[:P.yaml]")
+    parser.add_argument("--scenario", default="sine-0.5hz", metavar="S",
+                        help="scenario name, table1 or all (default sine-0.5hz)")
+    parser.add_argument("--realtime", action="store_true",
+                        help="pace the loop to wall time; report overruns and jitter")
+    parser.add_argument("--log", metavar="F.mcap",
+                        help="the log to write (default reports/deploy/<scenario>.mcap)")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object on stdout (prose goes to stderr)")
+    parser.add_argument("--seed", type=int, metavar="N",
+                        help="sensor-noise seed of the simulated rig (default: sim.seed, 1)")
+    parser.add_argument("--duration", type=float, metavar="S",
+                        help="run only the first S seconds of each scenario")
+    parser.add_argument("--fail-safe", choices=sorted(FAIL_SAFE_MODES), default="hold",
+                        help="valve state on a fault: hold (all closed, default) or exhaust")
+    parser.add_argument("--plots", metavar="DIR", help="write PNG figures of each run to DIR")
+    args = parser.parse_args(argv)
+
+    # --- everything is checked before anything runs ----------------------------------------
+    controller = load_controller(args.controller)
+    kind, plant_path = parse_rig(args.rig)
+    plant_cfg = load_plant(plant_path)
+    rig_source = f"plant {plant_path}" if plant_path else "the default plant, the paper's rig"
+    check_rig_compatible(controller, plant_cfg.rig_metadata(), args.controller, rig_source)
+    scenarios = resolve_scenarios(args.scenario)
+    if args.seed is not None and args.seed < 0:
+        raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0.0):
+        raise ExperimentError(f"--duration must be > 0 s, got {args.duration}")
+    seed = plant_cfg.sim.seed if args.seed is None else args.seed
+    plant_cfg = plant_cfg.with_updates({"sim": {"seed": seed}})
+    settings = SupervisorSettings.from_controller(controller)
+    cfg_vec = pack(controller)
+    fail_safe = FAIL_SAFE_MODES[args.fail_safe]
+    several = len(scenarios) > 1
+    base_meta = {"controller": args.controller, "controller_sha256": sha256_file(args.controller),
+                 "rig": kind, "fail_safe": args.fail_safe, **plant_meta(plant_path)}
+
+    results: dict[str, dict[str, Any]] = {}
+    timings: dict[str, dict[str, Any]] = {}
+    faults: list[dict[str, Any]] = []
+    warnings: list[dict[str, Any]] = []
+    rows = []
+    for sc in tqdm(scenarios, desc="scenarios", unit="scenario", disable=None, leave=False):
+        if kind == "sim":
+            rig, pcfg, _ = sim_rig_for(sc, plant_cfg, seed)
+        else:
+            from pneutune.control.sim.closed_loop import scenario_plant
+
+            pcfg = scenario_plant(plant_cfg, sc)
+            rig = PipeRig(plant=plant_path, scenario=sc.name, seed=seed)
+        try:
+            check_rig_compatible(controller, rig.rig_metadata(), args.controller,
+                                 f"rig {kind}")
+            res = run_scenario(controller, sc, rig, supervisor=Supervisor(settings),
+                               realtime=args.realtime, record_truth=True, cfg_vec=cfg_vec,
+                               fail_safe=fail_safe, duration=args.duration, plant=pcfg,
+                               seed=seed)
+        finally:
+            rig.close()
+        path = _log_path(args.log, sc.name, several)
+        res.save_log(os.fspath(path), run=base_meta)
+        m = res.metrics.as_dict()
+        m["log"] = str(path)
+        m["samples"] = res.loop.n_done
+        m["events"] = [e.as_dict() for e in res.loop.events]
+        results[sc.name] = m
+        timings[sc.name] = res.loop.timing.as_dict()
+        rows.append((sc.name, m, sc.paper))
+        warnings += [{"scenario": sc.name, **e.as_dict()} for e in res.loop.events
+                     if e.level == "warning"]
+        if args.plots and res.loop.n_done > 1:
+            from pneutune.control.cli.plots import plot_closed_loop
+
+            m["plots"] = [str(p) for p in plot_closed_loop(res.closed_loop_result(), args.plots)]
+        if res.fault is not None:
+            faults.append({"scenario": sc.name, **res.fault.as_dict()})
+            break
+
+    not_run = [sc.name for sc in scenarios if sc.name not in results]
+    if args.json:
+        print_json({"scenarios": results, "faults": faults, "warnings": warnings,
+                    "realtime": {"enabled": bool(args.realtime), "scenarios": timings},
+                    "not_run": not_run, "controller": args.controller,
+                    "variant": controller.variant, "rig": args.rig, "seed": seed})
+    else:
+        info(format_table(rows, f"deploy {args.controller} ({controller.variant}) on rig "
+                                f"{args.rig}, seed {seed}"))
+        for name, timing in timings.items():
+            info(_timing_line(name, timing))
+        for w in warnings:
+            info(f"warning: {w['scenario']}: t={w['t']:.3f} s: {w['code']}: {w['message']}")
+        for m in results.values():
+            info(f"wrote {m['log']}" + (f" (figures in {args.plots}/)" if "plots" in m else ""))
+        if not_run:
+            info(f"not run after the fault: {', '.join(not_run)}")
+    if faults:
+        f = faults[0]
+        info(f"error: fault {f['code']} in scenario {f['scenario']} at t={f['t']:.4f} s: "
+             f"{f['message']} (log: {results[f['scenario']]['log']})")
+        return EXIT_FAULT
+    return 0
+
+
+def entry() -> None:  # pragma: no cover - console script
+    """Console-script wrapper."""
+    run_cli(main)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    entry()

@@ -1,0 +1,219 @@
+"""``simulate``: run the simulated rig, open loop (identification or commissioning run) or
+closed loop."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from pneutune.control.cli.common import (
+    format_table,
+    info,
+    make_parser,
+    plant_meta,
+    print_json,
+    run_cli,
+)
+from pneutune.control.contracts.atomic import sha256_file
+from pneutune.control.contracts.plant import PlantConfig, load_plant
+from pneutune.control.errors import ExperimentError
+
+DESCRIPTION = """\
+Run the simulated rig (the paper's Sec. 2 model with valve switching, stiction, end stops and
+noisy sensors) and write the run as an MCAP log (contract pneutune.log/1) that `identify`,
+Foxglove or any MCAP reader opens.
+
+Three modes:
+
+  --experiment identification
+      the identification run: each valve charging/discharging its chamber with the piston on
+      an end stop (full duty and a duty sweep), ramps at several speeds in both directions,
+      sines of rising frequency, rest. No tuned controller is needed: a proportional loop
+      designed from the stroke alone moves the piston. --out is required. The loop updates
+      the duties every rig.Ts (4 ms); the sensors are logged every --sample-period (default
+      0.5 ms, a 2 kHz acquisition), fast enough to resolve the lag of the motion behind the
+      pressure force that carries the moving mass (docs/identifiability.md).
+
+  --experiment commissioning
+      a second, independent protocol, as another rig's commissioning engineer would run it
+      (about 76 s): an ascending duty staircase on each valve in turn with the piston held on
+      an end stop (from ambient for a charging valve, from supply for an exhausting one),
+      constant-velocity moves at 2-80 mm/s in both directions under a PI velocity loop
+      designed from the stroke and rig.Ts alone, full-duty bursts with short braking pulses
+      and closed-valve coasting, rest. --out is required. Logged at the control rate rig.Ts
+      (--sample-period to log faster) and without /sim/truth, like a log from a rig you did
+      not build.
+
+  Which one: identification makes the log `identify` is designed around (its 0.5 ms
+  samples resolve the moving mass); commissioning checks that `identify`, and the model it
+  gives, hold up on a log of another design and at the control rate, where the moving mass
+  is not resolved (`identify --mass`, or log it with --sample-period 0.0005). Either runs
+  on any --plant.
+
+  --controller C.yaml --scenario S
+      closed loop: the controller of C.yaml (contract 4) tracks a scenario; prints E_p and
+      E_rms over the last three periods (the paper's Sec. 5.1 indices) beside the paper's
+      Table 1. Scenarios:
+        sine-0.5hz         17.5 sin(pi t) mm, M = 1.05 kg
+        sine-0.75hz        17.5 sin(1.5 pi t) mm
+        sine-0.5hz-heavy   as sine-0.5hz with a 1.136 kg payload (M = 2.18 kg)
+        square-0.5hz       smooth square, 17.5 mm, 0.8 s quintic edges
+        disturbance-0.5hz  sine-0.5hz with 30 N at 7.6 s, 80 N at 9.8 s, removed at 11.9 s
+        table1             the first four;  all: all five
+"""
+
+EPILOG = """\
+examples:
+  simulate --experiment identification --seed 3 --out /tmp/r.mcap
+  simulate --experiment identification --sample-period 0.004 --out /tmp/r4ms.mcap
+  simulate --experiment commissioning --plant plant.yaml --seed 5 --out /tmp/c.mcap
+  simulate --controller data/controller-paper.yaml --scenario table1
+  simulate --controller data/controller-paper.yaml --scenario all --json
+  simulate --controller reports/tune/controller.yaml --scenario sine-0.5hz --out run.mcap \\
+           --plots reports/figs
+
+With several scenarios, --out F.mcap writes F-<scenario>.mcap for each. plant.yaml is merged
+over the paper's rig (DESIGN.md, contract 2). The same seed gives the same numbers in any
+process.
+"""
+
+
+def _experiment(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
+    from pneutune.control.rig.commissioning_run import simulate_commissioning
+    from pneutune.control.rig.identification_run import IDENT_SAMPLE_PERIOD, simulate_identification
+
+    name = args.experiment
+    if args.out is None:
+        raise ExperimentError(f"--experiment {name} needs --out F.mcap")
+    bar = tqdm(total=1, unit="sample", desc=f"{name} run", disable=None, leave=False)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    if name == "identification":
+        period = IDENT_SAMPLE_PERIOD if args.sample_period is None else args.sample_period
+        rec = simulate_identification(plant_cfg, seed=seed, progress=progress,
+                                      sample_period=period)
+    else:
+        rec = simulate_commissioning(plant_cfg, seed=seed, progress=progress,
+                                     sample_period=args.sample_period)
+    bar.close()
+    run_meta = {"seed": str(seed), "experiment": name, **plant_meta(args.plant)}
+    rec.save(args.out, rig=plant_cfg.rig_metadata(), run=run_meta)
+    size = os.path.getsize(args.out)
+    has_reference = rec.reference_ is not None and bool(np.isfinite(rec.reference_).any())
+    topics = ["/rig/sensors", "/rig/valves"]
+    topics += ["/control/reference"] if has_reference else []
+    topics += ["/experiment/segment"]
+    topics += ["/sim/truth"] if rec.truth_ is not None else []
+    summary = {
+        "out": args.out, "experiment": name, "seed": seed,
+        "duration_s": rec.n * rec.Ts, "samples": rec.n, "sample_period": rec.Ts,
+        "segments": len(rec.segments_), "topics": topics,
+        "bytes": size, "sha256": sha256_file(args.out),
+    }
+    if args.json:
+        print_json(summary)
+    else:
+        info(f"wrote {args.out}: {name} run, {summary['duration_s']:.1f} s, "
+             f"{rec.n} samples every {rec.Ts * 1e3:g} ms, {len(rec.segments_)} segments, "
+             f"{size / 1e6:.2f} MB, seed {seed}")
+        info("topics: " + ", ".join(summary["topics"]))
+    return 0
+
+
+def _out_path(out: str, scenario: str, several: bool) -> Path:
+    p = Path(out)
+    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p
+
+
+def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
+    from pneutune.control.contracts.controller import load_controller
+    from pneutune.control.law.layout import pack
+    from pneutune.control.sim.closed_loop import simulate_scenario
+    from pneutune.control.sim.scenarios import resolve_scenarios
+
+    controller = load_controller(args.controller)
+    if args.scenario is None:
+        raise ExperimentError("--controller needs --scenario S (a name, table1 or all)")
+    scenarios = resolve_scenarios(args.scenario)
+    cfg_vec = pack(controller)
+    results = {}
+    rows = []
+    for sc in tqdm(scenarios, desc="scenarios", unit="scenario", disable=None, leave=False):
+        res = simulate_scenario(controller, sc, plant_cfg, seed=seed, record_truth=bool(args.out),
+                                cfg_vec=cfg_vec)
+        m = res.metrics.as_dict()
+        results[sc.name] = m
+        rows.append((sc.name, m, sc.paper))
+        if args.out:
+            path = _out_path(args.out, sc.name, len(scenarios) > 1)
+            run_meta = {"seed": str(seed), "scenario": sc.name, "controller": args.controller,
+                        "controller_sha256": sha256_file(args.controller),
+                        "variant": controller.variant, **plant_meta(args.plant)}
+            res.recording().save(path, rig=res.plant.rig_metadata(), run=run_meta)
+            m["log"] = str(path)
+        if args.plots:
+            from pneutune.control.cli.plots import plot_closed_loop
+
+            m["plots"] = [str(p) for p in plot_closed_loop(res, args.plots)]
+    if args.json:
+        print_json({"scenarios": results, "controller": args.controller, "seed": seed,
+                    "variant": controller.variant})
+    else:
+        info(format_table(rows, f"{args.controller} ({controller.variant}), seed {seed}"))
+        for _name, m in results.items():
+            if "log" in m:
+                info(f"wrote {m['log']}")
+        if args.plots:
+            info(f"figures in {args.plots}/")
+    return 0 if all(m["status"] == "ok" for m in results.values()) else 1
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``simulate``."""
+    parser = make_parser("simulate", DESCRIPTION, EPILOG)
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--experiment", choices=["identification", "commissioning"],
+                      help="excitation protocol to run (see above)")
+    mode.add_argument("--controller", metavar="C.yaml", help="controller.yaml for a closed loop")
+    parser.add_argument("--scenario", metavar="S", help="scenario name, table1 or all")
+    parser.add_argument("--out", metavar="F.mcap", help="the log to write")
+    parser.add_argument("--plant", metavar="P.yaml", help="plant.yaml (default: the paper's rig)")
+    parser.add_argument("--seed", type=int, metavar="N",
+                        help="sensor-noise seed (default: sim.seed of the plant, 1)")
+    parser.add_argument("--sample-period", type=float, metavar="S",
+                        help="--experiment: sensor logging period [s], dividing rig.Ts "
+                             "(default 0.0005 for identification, rig.Ts for commissioning)")
+    parser.add_argument("--plots", metavar="DIR", help="write PNG figures (closed loop) to DIR")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object on stdout (prose goes to stderr)")
+    args = parser.parse_args(argv)
+
+    plant_cfg = load_plant(args.plant)
+    if args.seed is not None and args.seed < 0:
+        raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
+    seed = plant_cfg.sim.seed if args.seed is None else args.seed
+    plant_cfg = plant_cfg.with_updates({"sim": {"seed": seed}})
+    if args.experiment:
+        if args.scenario or args.plots:
+            raise ExperimentError("--scenario and --plots go with --controller, "
+                                  "not --experiment")
+        return _experiment(args, plant_cfg, seed)
+    return _closed_loop(args, plant_cfg, seed)
+
+
+def entry() -> None:  # pragma: no cover - console script
+    """Console-script wrapper."""
+    run_cli(main)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    entry()

@@ -1,0 +1,5 @@
+"""The four file contracts of DESIGN.md as strict pydantic models: plant.yaml, model.yaml,
+controller.yaml, their JSON Schemas, YAML reading and writing, atomic file output.
+
+Layer 2: imports physics.
+"""

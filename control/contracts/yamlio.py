@@ -1,0 +1,237 @@
+"""YAML input and output for the configuration files (plant.yaml, model.yaml, controller.yaml).
+
+* ``yaml.safe_load`` semantics only (a SafeLoader subclass), never arbitrary objects.
+* A key given twice in one mapping is an error (PyYAML would silently keep the last one).
+* pydantic validation errors become one :class:`~pneutune.control.errors.ConfigError` naming the
+  file, the dotted key path and the rule. A number written as ``6.0e5`` is read by YAML 1.1 as a
+  *string*; the loaders are strict and say so instead of converting it silently.
+* Output is written atomically, with floats in a form that YAML 1.1 reads back as floats.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from pneutune.control.contracts.atomic import atomic_write_text
+from pneutune.control.errors import ConfigError
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class _UniqueKeySafeLoader(yaml.SafeLoader):
+    """SafeLoader that rejects duplicate mapping keys."""
+
+
+def _construct_mapping(loader: _UniqueKeySafeLoader, node: yaml.MappingNode, deep: bool = False):
+    loader.flatten_mapping(node)
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})",
+                key_node.start_mark,
+            )
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeySafeLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping
+)
+
+
+def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a YAML file whose top level is a mapping.
+
+    Parameters
+    ----------
+    path : path-like
+        The file.
+
+    Returns
+    -------
+    dict
+        The parsed mapping.
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read, is not YAML, repeats a key or is not a mapping.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(str(p), "", "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(str(p), "", f"cannot read the file ({exc})") from None
+    try:
+        data = yaml.load(text, Loader=_UniqueKeySafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(str(p), "", f"not valid YAML{where}: {problem}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(str(p), "",
+                          f"expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Merge ``over`` onto ``base``: nested mappings merge key by key, anything else replaces.
+
+    Keys of ``over`` unknown to ``base`` are kept, so that validation can reject them by name.
+    """
+    out: dict[str, Any] = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _format_loc(loc: tuple[Any, ...]) -> str:
+    parts: list[str] = []
+    for item in loc:
+        if isinstance(item, int):
+            parts.append(f"[{item}]")
+        else:
+            parts.append(("." if parts else "") + str(item))
+    return "".join(parts)
+
+
+def _describe(err: Mapping[str, Any]) -> str:
+    etype = err.get("type", "")
+    value = err.get("input")
+    if etype == "extra_forbidden":
+        return "unknown key (check the spelling against the schema)"
+    if etype == "missing":
+        return "required key is missing"
+    if etype in ("float_type", "int_type", "bool_type") and isinstance(value, str):
+        hint = ""
+        try:
+            float(value)
+            hint = (" (YAML 1.1 reads an exponent without a sign as a string: write e.g. "
+                    "6.0e+5, not 6.0e5)")
+        except ValueError:
+            pass
+        kind = {"float_type": "a number", "int_type": "an integer", "bool_type": "true/false"}
+        return f"expected {kind[etype]}, got the string {value!r}{hint}"
+    msg = str(err.get("msg", "invalid value"))
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    if etype not in ("value_error", "assertion_error") and value is not None and not isinstance(
+        value, (dict, list)
+    ):
+        msg = f"{msg}, got {value!r}"
+    return msg
+
+
+def validation_error(file: str, exc: ValidationError, prefix: str = "") -> ConfigError:
+    """Turn the first error of a pydantic ValidationError into a ConfigError.
+
+    Parameters
+    ----------
+    file : str
+        The file the data came from.
+    exc : pydantic.ValidationError
+        The validation failure.
+    prefix : str
+        Key path to prepend (when a sub-model was validated on its own).
+    """
+    errs = exc.errors(include_url=False)
+    err = errs[0]
+    key = _format_loc(tuple(err.get("loc", ())))
+    if prefix:
+        key = f"{prefix}.{key}" if key else prefix
+    message = _describe(err)
+    if len(errs) > 1:
+        message += f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})"
+    return ConfigError(file, key, message)
+
+
+def validate_model(model: type[M], data: Mapping[str, Any], file: str) -> M:
+    """Validate ``data`` against a pydantic model, raising :class:`ConfigError` on failure."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise validation_error(file, exc) from None
+
+
+def load_config(path: str | os.PathLike[str], model: type[M], schema: str,
+                defaults: Mapping[str, Any] | None = None) -> M:
+    """Load a configuration file: YAML mapping, schema id check, optional merge, validation.
+
+    Parameters
+    ----------
+    path : path-like
+        The file.
+    model : pydantic model class
+        What the document must validate as.
+    schema : str
+        The expected ``schema`` value (e.g. ``pneutune.plant/1``); a file may omit the key.
+    defaults : mapping, optional
+        Plain-data defaults the file is deep-merged over (plant.yaml); None: the file must be
+        complete.
+
+    Raises
+    ------
+    ConfigError
+        Bad YAML, a different schema, or a validation failure, naming the file and key.
+    """
+    data = load_yaml_mapping(path)
+    if "schema" in data and data["schema"] != schema:
+        raise ConfigError(str(path), "schema", f"expected {schema!r}, got {data['schema']!r}")
+    if defaults is not None:
+        data = deep_merge(defaults, data)
+    return validate_model(model, data, str(path))
+
+
+class _Dumper(yaml.SafeDumper):
+    """SafeDumper writing floats that YAML 1.1 reads back as floats (exponent with a sign)."""
+
+
+def _represent_float(dumper: yaml.SafeDumper, value: float) -> yaml.ScalarNode:
+    if math.isnan(value):
+        text = ".nan"
+    elif math.isinf(value):
+        text = ".inf" if value > 0 else "-.inf"
+    else:
+        text = repr(float(value))
+        if "e" in text and "e-" not in text and "e+" not in text:
+            text = text.replace("e", "e+")
+        if "." not in text and "e" in text:
+            mant, exp = text.split("e")
+            text = f"{mant}.0e{exp}"
+        elif "." not in text and "inf" not in text and "nan" not in text:
+            text += ".0"
+    return dumper.represent_scalar("tag:yaml.org,2002:float", text)
+
+
+_Dumper.add_representer(float, _represent_float)
+
+
+def dump_yaml(data: Mapping[str, Any]) -> str:
+    """Serialise a mapping to YAML text (key order kept, block style for nested mappings)."""
+    return yaml.dump(dict(data), Dumper=_Dumper, sort_keys=False, default_flow_style=None,
+                     width=100, allow_unicode=True)
+
+
+def write_yaml(path: str | os.PathLike[str], data: Mapping[str, Any], header: str = "") -> None:
+    """Write a mapping to ``path`` atomically, with an optional ``#`` comment header."""
+    text = dump_yaml(data)
+    if header:
+        text = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines()) + text
+    atomic_write_text(path, text)

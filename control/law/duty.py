@@ -1,0 +1,205 @@
+"""From the desired flow Q_Ld to the four valve duties: Eqs. (32)-(33) and the PWM inverse (numba).
+
+Eq. (32), as corrected (DESIGN.md)
+    Q_L,F is the virtual input Q_L of Eq. (25) with the two valves of the active mode fully open,
+    computed from the measured pressures (the paper typesets the B term inside the A fraction)::
+
+        mode 1 (Q_Ld > 0): Q_L,F = nR T0 [A_a mdot(a_in: p_s -> p_a) / V_a
+                                          + A_b mdot(b_out: p_b -> p0) / V_b]
+        mode 2 (Q_Ld < 0): Q_L,F = nR T0 [A_a mdot(a_out: p_a -> p0) / V_a
+                                          + A_b mdot(b_in: p_s -> p_b) / V_b]
+
+    with mdot the ISO 6358 flow of Eq. (7) at upstream temperature T0 (T_a = T_b = T0, Eq. 5).
+    Q_L,F >= 0 in both modes (it is the magnitude of the fully-open Q_L) [N/s].
+Eq. (33), as corrected
+    The paper's ``sat(Q_Ld / Q_L)`` is ``sat(Q_Ld / Q_L,F)`` (DESIGN.md): the fraction of the
+    fully-open flow wanted, saturated to [0, 1]. The five cases (:data:`CASE_NAMES`)::
+
+        1  Q_Ld > 0, Q_L,F = 0:  u(a_in, b_out) = 1,                 u(a_out, b_in) = 0
+        2  Q_Ld > 0, Q_L,F > 0:  u(a_in, b_out) = sat(Q_Ld / Q_L,F),  u(a_out, b_in) = 0
+        3  Q_Ld = 0:             all closed
+        4  Q_Ld < 0, Q_L,F > 0:  u(a_out, b_in) = sat(-Q_Ld / Q_L,F), u(a_in, b_out) = 0
+        5  Q_Ld < 0, Q_L,F = 0:  u(a_out, b_in) = 1                  (the paper's "-1": full
+                                 opening in mode 2; duties are never negative)
+
+    A non-finite Q_Ld falls into case 3 (all valves closed), the safe state.
+PWM inverse
+    ``u`` above is an *effective open fraction*. The valves' delays and minimum pulse make it
+    differ from the commanded duty (DESIGN.md); the controller config holds the measured curve
+    ``pwm: {duty, ratio}`` (effective fraction vs duty, non-decreasing, from (0, 0)).
+    :func:`pwm_inverse` returns the *smallest* duty whose effective fraction reaches ``u`` on the
+    piecewise-linear curve: 0 for u <= 0; inside the dead zone (the curve jumps from 0 to
+    ratio_j at the minimum pulse) the duty of the jump, so a small demand gives the smallest
+    pulse that opens the valve rather than a pulse that never opens it; above the curve's
+    largest ratio the smallest duty that reaches it (saturation: no longer pulse than needed).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from pneutune.control.physics.flow import iso6358_flow
+
+#: Eq. (33) cases, numbered as in the docstring.
+CASE_A_FILL_NO_FLOW = 1
+CASE_A_FILL = 2
+CASE_CLOSED = 3
+CASE_B_FILL = 4
+CASE_B_FILL_NO_FLOW = 5
+CASE_NAMES: dict[int, str] = {
+    CASE_A_FILL_NO_FLOW: "Q_Ld>0, Q_LF=0: a_in+b_out fully open",
+    CASE_A_FILL: "Q_Ld>0, Q_LF>0: a_in+b_out at sat(Q_Ld/Q_LF)",
+    CASE_CLOSED: "Q_Ld=0: all closed",
+    CASE_B_FILL: "Q_Ld<0, Q_LF>0: a_out+b_in at sat(-Q_Ld/Q_LF)",
+    CASE_B_FILL_NO_FLOW: "Q_Ld<0, Q_LF=0: a_out+b_in fully open",
+}
+
+
+@njit(cache=True, error_model="numpy")
+def fully_open_q_l(q_ld: float, p_a: float, p_b: float, p_s: float, p0: float, T0: float,
+                   nR: float, A_a: float, A_b: float, V_a: float, V_b: float, C: np.ndarray,
+                   b: np.ndarray) -> float:
+    """Q_L,F of Eq. (32) (corrected) for the mode selected by the sign of ``q_ld``.
+
+    Parameters
+    ----------
+    q_ld : float
+        Desired Q_L [N/s]; only its sign is used (0 gives 0).
+    p_a, p_b, p_s, p0 : float
+        Measured chamber, supply and ambient pressures [Pa abs].
+    T0 : float
+        Gas temperature [K].
+    nR : float
+        Polytropic exponent times gas constant [J/(kg K)].
+    A_a, A_b : float
+        Piston areas [m^2].
+    V_a, V_b : float
+        Chamber volumes [m^3].
+    C, b : (4,) float64
+        Sonic conductance [m^3/(s Pa)] and critical ratio of a_in, a_out, b_in, b_out.
+
+    Returns
+    -------
+    float
+        Q_L,F >= 0 [N/s].
+    """
+    if q_ld > 0.0:
+        m_a = iso6358_flow(C[0], b[0], p_s, p_a, T0)
+        m_b = iso6358_flow(C[3], b[3], p_b, p0, T0)
+    elif q_ld < 0.0:
+        m_a = iso6358_flow(C[1], b[1], p_a, p0, T0)
+        m_b = iso6358_flow(C[2], b[2], p_s, p_b, T0)
+    else:
+        return 0.0
+    return nR * T0 * (A_a * m_a / V_a + A_b * m_b / V_b)
+
+
+@njit(cache=True, error_model="numpy")
+def eq33_into(q_ld: float, q_lf: float, u_out: np.ndarray) -> int:
+    """The five cases of Eq. (33) (corrected): effective open fractions of the four valves.
+
+    Parameters
+    ----------
+    q_ld : float
+        Desired Q_L [N/s].
+    q_lf : float
+        Fully-open Q_L,F of the mode of ``q_ld`` [N/s], >= 0.
+    u_out : (4,) float64
+        Receives the effective open fractions (0..1) of a_in, a_out, b_in, b_out.
+
+    Returns
+    -------
+    int
+        The case, 1..5 (:data:`CASE_NAMES`).
+    """
+    for i in range(4):
+        u_out[i] = 0.0
+    if q_ld > 0.0:
+        if q_lf > 0.0:
+            r = q_ld / q_lf
+            u = 1.0 if r > 1.0 else r
+            u_out[0] = u
+            u_out[3] = u
+            return CASE_A_FILL
+        u_out[0] = 1.0
+        u_out[3] = 1.0
+        return CASE_A_FILL_NO_FLOW
+    if q_ld < 0.0:
+        if q_lf > 0.0:
+            r = -q_ld / q_lf
+            u = 1.0 if r > 1.0 else r
+            u_out[1] = u
+            u_out[2] = u
+            return CASE_B_FILL
+        u_out[1] = 1.0
+        u_out[2] = 1.0
+        return CASE_B_FILL_NO_FLOW
+    return CASE_CLOSED
+
+
+@njit(cache=True, error_model="numpy")
+def pwm_inverse(ratio: float, duty_pts: np.ndarray, ratio_pts: np.ndarray) -> float:
+    """Smallest commanded duty whose effective open fraction reaches ``ratio``.
+
+    Parameters
+    ----------
+    ratio : float
+        Wanted effective open fraction (0..1).
+    duty_pts, ratio_pts : (m,) float64
+        The PWM curve: effective fraction ``ratio_pts`` at duty ``duty_pts``, both
+        non-decreasing, starting at (0, 0) (validated by the config loader).
+
+    Returns
+    -------
+    float
+        Duty in [0, 1]: 0 for ``ratio <= 0``; linear interpolation on the first segment that
+        reaches ``ratio``; the smallest duty reaching the curve's top for larger ratios.
+    """
+    if not ratio > 0.0:
+        return 0.0
+    m = duty_pts.shape[0]
+    top = ratio_pts[m - 1]
+    if not top > 0.0:
+        return 0.0
+    if ratio > top:
+        ratio = top
+    for i in range(1, m):
+        r1 = ratio_pts[i]
+        if r1 >= ratio:
+            r0 = ratio_pts[i - 1]
+            d0 = duty_pts[i - 1]
+            d1 = duty_pts[i]
+            if r1 == ratio:
+                return d1
+            return d0 + (ratio - r0) / (r1 - r0) * (d1 - d0)
+    return duty_pts[m - 1]
+
+
+@njit(cache=True, error_model="numpy")
+def duties_into(q_ld: float, q_lf: float, duty_pts: np.ndarray, ratio_pts: np.ndarray,
+                u_work: np.ndarray, duties_out: np.ndarray) -> int:
+    """Eq. (33) then the PWM inverse: the four commanded duties.
+
+    Parameters
+    ----------
+    q_ld, q_lf : float
+        Desired and fully-open Q_L [N/s].
+    duty_pts, ratio_pts : (m,) float64
+        PWM curve (see :func:`pwm_inverse`).
+    u_work : (4,) float64
+        Receives the effective open fractions of Eq. (33).
+    duties_out : (4,) float64
+        Receives the commanded duties of a_in, a_out, b_in, b_out (0..1).
+
+    Returns
+    -------
+    int
+        The Eq. (33) case, 1..5.
+    """
+    case = eq33_into(q_ld, q_lf, u_work)
+    for i in range(4):
+        duties_out[i] = pwm_inverse(u_work[i], duty_pts, ratio_pts)
+    return case
+
+

@@ -1,0 +1,129 @@
+"""What a run records, sample by sample, and how it becomes an MCAP run log (contract 1)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pneutune.control import __version__
+from pneutune.control.constants import LOG_SCHEMA, VALVES
+from pneutune.control.logs.runlog import topic_fields
+
+SENSOR_FIELDS = topic_fields("/rig/sensors")
+TRUTH_FIELDS = topic_fields("/sim/truth")
+#: The named fields of /control/state; the last field, theta_hat, is a vector of 6.
+CONTROL_STATE_FIELDS = topic_fields("/control/state")[:-1]
+
+
+@dataclass
+class Recording:
+    """Per-sample arrays of one run, filled in place.
+
+    Parameters
+    ----------
+    n : int
+        Number of samples.
+    Ts : float
+        Sampling period [s]; sample k is at ``k * Ts``.
+    truth, reference, control_state : bool
+        Whether ``/sim/truth``, ``/control/reference`` and ``/control/state`` are recorded.
+    """
+
+    n: int
+    Ts: float
+    truth: bool = False
+    reference: bool = False
+    control_state: bool = False
+    sensors_: np.ndarray = field(init=False)
+    duties_: np.ndarray = field(init=False)
+    truth_: np.ndarray | None = field(init=False, default=None)
+    reference_: np.ndarray | None = field(init=False, default=None)
+    state_: np.ndarray | None = field(init=False, default=None)
+    segments_: list[tuple[float, str, str, dict[str, Any]]] = field(init=False)
+    events_: list[tuple[float, str, str, str]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.sensors_ = np.full((self.n, 4), np.nan)
+        self.duties_ = np.full((self.n, 4), np.nan)
+        if self.truth:
+            self.truth_ = np.full((self.n, len(TRUTH_FIELDS)), np.nan)
+        if self.reference:
+            self.reference_ = np.full((self.n, 3), np.nan)
+        if self.control_state:
+            self.state_ = np.full((self.n, len(CONTROL_STATE_FIELDS) + 6), np.nan)
+        self.segments_ = []
+        self.events_ = []
+
+    @property
+    def t(self) -> np.ndarray:
+        """Sample times [s]."""
+        return np.arange(self.n) * self.Ts
+
+    def segment(self, t: float, label: str, kind: str, params: Mapping[str, Any]) -> None:
+        """Record the start of an experiment segment."""
+        self.segments_.append((float(t), label, kind, dict(params)))
+
+    def event(self, t: float, level: str, code: str, message: str) -> None:
+        """Record a rig event (``info``, ``warning`` or ``error``)."""
+        self.events_.append((float(t), level, code, message))
+
+    def truncate(self, n: int) -> None:
+        """Keep the first ``n`` samples (a run that stopped early)."""
+        self.n = n
+        for name in ("sensors_", "duties_", "truth_", "reference_", "state_"):
+            arr = getattr(self, name)
+            if arr is not None:
+                setattr(self, name, arr[:n])
+
+    def save(self, path: str | os.PathLike[str], rig: Mapping[str, float | str],
+             run: Mapping[str, str]) -> None:
+        """Write the run as an MCAP log (contract 1), atomically.
+
+        Parameters
+        ----------
+        path : path-like
+            Destination ``.mcap`` file.
+        rig : mapping
+            The ``rig`` metadata (every key of the rig block).
+        run : mapping
+            Extra ``run`` metadata (``seed``, ...); schema, created_by and version are added.
+        """
+        from pneutune.control.logs.runlog import RunLogWriter
+
+        # sample_period: the logging period, which an identification run makes shorter than
+        # the control period rig.Ts (identification_run.IDENT_SAMPLE_PERIOD)
+        meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__,
+                "sample_period": repr(float(self.Ts))}
+        meta.update({k: str(v) for k, v in run.items()})
+        t = self.t
+        # Values are stored rounded far below any sensor's resolution (position to 1 nm,
+        # pressure to 1 mPa, duty to 1e-9): shorter JSON, smaller logs, nothing lost.
+        sensors = np.column_stack([np.round(self.sensors_[:, 0], 9),
+                                   np.round(self.sensors_[:, 1:], 3)])
+        duties = np.round(self.duties_, 9)
+        with RunLogWriter(path, rig=rig, run=meta) as w:
+            for t_seg, label, kind, params in self.segments_:
+                w.write("/experiment/segment", t_seg,
+                        {"label": label, "kind": kind, "params": params})
+            w.write_many("/rig/sensors", t, dict(zip(SENSOR_FIELDS, sensors.T, strict=True)))
+            w.write_many("/rig/valves", t,
+                         {f"u_{v}": col for v, col in zip(VALVES, duties.T, strict=True)})
+            if self.truth_ is not None:
+                # v to 1 nm/s, a to 1 um/s^2, forces to 1 uN, mass flows to 1e-12 kg/s
+                truth = np.column_stack([np.round(col, d) for col, d in
+                                         zip(self.truth_.T, (9, 6, 6, 6, 12, 12), strict=True)])
+                w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, truth.T, strict=True)))
+            if self.reference_ is not None:
+                ok = np.isfinite(self.reference_[:, 0])
+                w.write_many("/control/reference", t[ok],
+                             dict(zip(("x_r", "v_r", "a_r"), self.reference_[ok].T, strict=True)))
+            if self.state_ is not None:
+                cols = {name: self.state_[:, i] for i, name in enumerate(CONTROL_STATE_FIELDS)}
+                cols["theta_hat"] = self.state_[:, len(CONTROL_STATE_FIELDS):]
+                w.write_many("/control/state", t, cols)
+            for t_ev, level, code, message in self.events_:
+                w.write("/rig/events", t_ev, {"level": level, "code": code, "message": message})

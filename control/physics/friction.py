@@ -1,0 +1,104 @@
+"""Friction models of the paper, once: scalar forms compiled with numba (the plant and the
+control law), vectorised numpy forms beside them (identification), tested to agree.
+
+* :func:`stribeck_force` / :func:`stribeck` - Eq. (2), the friction while sliding.
+* :func:`smooth_sign` / :func:`smooth_sign_array` - S_f of Eq. (4), ``(2/pi) arctan(1000 v)``.
+* :func:`smooth_friction` - Eqs. (3)-(4), the controller's smooth approximation
+  ``b_v v + A_f S_f(v)``.
+
+At v = 0 the direction of sliding is not v's sign: the scalar form takes it as an argument
+(the plant passes the sign of the applied force at a break-away); the vectorised form takes
+``sign(v)`` unless a direction is given, so a sample exactly at rest gets no Coulomb term.
+
+Sticking (Eq. 2's ``F_e`` branch) is not a force law but a state of the plant: while the piston
+is stuck, friction equals the applied force as long as that force is at most ``F_S`` in
+magnitude; see :mod:`pneutune.control.plant.dynamics`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+#: Slope of the arctan in S_f of Eq. (4) [s/m].
+SF_SLOPE: float = 1000.0
+
+
+@njit(cache=True)
+def stribeck_force(v: float, direction: float, F_S: float, F_C: float, v_s: float,
+                   alpha: float, b_v: float) -> float:
+    """Sliding friction of Eq. (2) [N].
+
+    Parameters
+    ----------
+    v : float
+        Piston velocity [m/s].
+    direction : float
+        Sign of the motion, +1 or -1. Equal to sgn(v) for v != 0; at v = 0 while breaking
+        away it is the sign of the applied force, so that friction starts at F_S.
+    F_S, F_C : float
+        Stiction and Coulomb levels [N].
+    v_s : float
+        Stribeck velocity [m/s].
+    alpha : float
+        Stribeck exponent [-].
+    b_v : float
+        Viscous coefficient [N s/m].
+    """
+    av = abs(v)
+    if av > 0.0:
+        ratio = av / v_s
+        if alpha == 2.0:
+            g = math.exp(-ratio * ratio)
+        elif alpha == 1.0:
+            g = math.exp(-ratio)
+        else:
+            g = math.exp(-math.exp(alpha * math.log(ratio)))
+    else:
+        g = 1.0
+    return (F_C + (F_S - F_C) * g) * direction + b_v * v
+
+
+@njit(cache=True)
+def smooth_sign(v: float) -> float:
+    """S_f of Eq. (4): (2/pi) arctan(1000 v), dimensionless, v in m/s."""
+    return (2.0 / math.pi) * math.atan(SF_SLOPE * v)
+
+
+@njit(cache=True)
+def smooth_sign_derivative(v: float) -> float:
+    """dS_f/dv of Eq. (4) [s/m]."""
+    z = SF_SLOPE * v
+    return (2.0 / math.pi) * SF_SLOPE / (1.0 + z * z)
+
+
+@njit(cache=True)
+def smooth_friction(v: float, b_v: float, A_f: float) -> float:
+    """The smooth friction model of Eq. (3), ``b_v v + A_f S_f(v)`` [N]."""
+    return b_v * v + A_f * smooth_sign(v)
+
+
+def smooth_sign_array(v: np.ndarray) -> np.ndarray:
+    """S_f of Eq. (4), vectorised: (2/π) arctan(SF_SLOPE v) [-], v in m/s."""
+    return (2.0 / np.pi) * np.arctan(SF_SLOPE * np.asarray(v, dtype=np.float64))
+
+
+def stribeck(v: np.ndarray, F_S: float, F_C: float, v_s: float, alpha: float, b_v: float,
+             direction: np.ndarray | None = None) -> np.ndarray:
+    """Sliding friction of Eq. (2), vectorised [N] (:func:`stribeck_force` per element).
+
+    Parameters
+    ----------
+    v : array
+        Velocity [m/s].
+    F_S, F_C, v_s, alpha, b_v : float
+        Stiction and Coulomb levels [N], Stribeck velocity [m/s] and exponent [-], viscous
+        coefficient [N s/m].
+    direction : array, optional
+        Direction of sliding (+1/-1); default ``sign(v)``, 0 at v = 0.
+    """
+    v = np.asarray(v, dtype=np.float64)
+    d = np.sign(v) if direction is None else np.asarray(direction, dtype=np.float64)
+    return d * (F_C + (F_S - F_C) * np.exp(-((np.abs(v) / v_s) ** alpha))) + b_v * v

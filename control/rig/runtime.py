@@ -1,0 +1,541 @@
+"""The deploy runtime: a fixed-rate loop at Ts around the one compiled control step.
+
+Per sample k (rig time t = k Ts), in this order:
+
+1. ``rig.read()`` the sensors ``[x, p_a, p_b, p_s]`` (and ``rig.sample_times()`` if it has them);
+2. the supervisor checks them (:meth:`pneutune.control.rig.supervisor.Supervisor.check_sensors`);
+   a fault writes the fail-safe duties *in this sample*, records the event and stops the loop:
+   the bad sample never reaches the control law;
+3. :func:`pneutune.control.law.darc.step_into`, the same compiled step as the simulator and the
+   tuner (STYLE.md §2), on ``[t, x, p_a, p_b, p_s, x_r, v_r, a_r]``;
+4. ``rig.write(duties)``;
+5. the supervisor's re-identification warnings on θ̂ and p_s (they never stop the run);
+6. ``rig.advance()`` to the next sample, then (``realtime``) wait for its wall-clock time.
+
+Start: the piston must rest where the reference starts (the precondition of
+:func:`pneutune.control.sim.closed_loop.simulate_scenario` too): the first reading must lie within
+``start_tolerance`` of x_r(0), else the run stops with the fault ``start_position``. The
+controller state starts from :func:`pneutune.control.law.darc.init_state` at x_r(0) and the first
+measured chamber pressures, exactly as in the simulator, so that on the simulated rig with the
+same plant and seed a deploy run reproduces ``simulate --controller`` sample for sample.
+
+Pacing: without ``realtime`` the loop runs as fast as the rig allows (a simulated rig: about
+40 µs a sample). With ``realtime`` iteration k is due at wall time ``t_0 + k Ts``
+(``time.perf_counter_ns``): the loop sleeps until ``spin_s`` before it, then spins. A late
+iteration is never followed by a burst of catch-up iterations: when one starts more than a
+period late, the schedule shifts to now (the lost time is reported as ``slipped_s``). Jitter is
+the start lateness of each iteration; an overrun is an iteration whose work (read to advance)
+ended after the next one was due. The first overrun is logged as a ``deadline_overrun``
+warning.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.law.darc import MEAS_SIZE, S_THETA, init_state, step_into
+from pneutune.control.law.layout import pack
+from pneutune.control.logs.recording import Recording
+from pneutune.control.rig.pipe import DeploySimRig, RigIOError
+from pneutune.control.rig.protocol import Rig
+from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES, Event, Supervisor, SupervisorSettings
+from pneutune.control.sim.closed_loop import (
+    LOG_INDEX,
+    ClosedLoopResult,
+    Metrics,
+    compute_metrics,
+    scenario_plant,
+)
+from pneutune.control.sim.scenarios import Scenario
+
+#: Status of a run that a supervisor fault stopped (Metrics.status).
+STATUS_FAULT = "fault"
+#: Largest distance between the first position reading and x_r(0) [m].
+START_TOLERANCE = 1.0e-3
+
+
+@dataclass(frozen=True)
+class TimingStats:
+    """Timing of one run, in seconds.
+
+    Attributes
+    ----------
+    samples : int
+        Iterations timed.
+    step_p50, step_p99, step_max : float
+        Latency of the control step alone (:func:`darc.step_into`).
+    loop_p50, loop_p99, loop_max : float
+        Latency from the start of ``read`` to the end of ``write`` (sensor to valve).
+    iteration_p50, iteration_p99 : float
+        Whole iteration (read to the end of ``advance``, without the realtime wait).
+    realtime : bool
+        Whether the loop was paced to wall time; the fields below are 0 otherwise.
+    overruns : int
+        Iterations that ended after the next one was due.
+    jitter_p50, jitter_p99, jitter_max : float
+        Start lateness of the iterations against their schedule.
+    slipped_s : float
+        Schedule shifts after iterations that started more than a period late.
+    wall_s : float
+        Wall time of the loop.
+    """
+
+    samples: int
+    step_p50: float
+    step_p99: float
+    step_max: float
+    loop_p50: float
+    loop_p99: float
+    loop_max: float
+    iteration_p50: float
+    iteration_p99: float
+    realtime: bool
+    overruns: int
+    jitter_p50: float
+    jitter_p99: float
+    jitter_max: float
+    slipped_s: float
+    wall_s: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain dict: the latencies and jitter in µs (keys ``*_us``), counts, ``wall_s``."""
+        us = ("step_p50", "step_p99", "step_max", "loop_p50", "loop_p99", "loop_max",
+              "iteration_p50", "iteration_p99", "jitter_p50", "jitter_p99", "jitter_max")
+        out: dict[str, Any] = {f"{k}_us": getattr(self, k) * 1e6 for k in us}
+        out.update(samples=self.samples, realtime=self.realtime, overruns=self.overruns,
+                   slipped_s=self.slipped_s, wall_s=self.wall_s)
+        return out
+
+
+def _stats(step_ns: np.ndarray, loop_ns: np.ndarray, iter_ns: np.ndarray, late_ns: np.ndarray,
+           realtime: bool, overruns: int, slipped_ns: int, wall_ns: int) -> TimingStats:
+    def q(a: np.ndarray, p: float) -> float:
+        return float(np.percentile(a, p)) * 1e-9 if a.size else math.nan
+
+    def mx(a: np.ndarray) -> float:
+        return float(a.max()) * 1e-9 if a.size else math.nan
+
+    rt = realtime and late_ns.size > 0
+    return TimingStats(
+        samples=int(step_ns.size), step_p50=q(step_ns, 50), step_p99=q(step_ns, 99),
+        step_max=mx(step_ns), loop_p50=q(loop_ns, 50), loop_p99=q(loop_ns, 99),
+        loop_max=mx(loop_ns), iteration_p50=q(iter_ns, 50), iteration_p99=q(iter_ns, 99),
+        realtime=realtime, overruns=overruns,
+        jitter_p50=q(late_ns, 50) if rt else 0.0, jitter_p99=q(late_ns, 99) if rt else 0.0,
+        jitter_max=mx(late_ns) if rt else 0.0, slipped_s=slipped_ns * 1e-9,
+        wall_s=wall_ns * 1e-9)
+
+
+@dataclass
+class LoopResult:
+    """What :func:`run_loop` produced.
+
+    Attributes
+    ----------
+    recording : Recording
+        Sensors, duties, reference, ``/control/state`` (and ``/sim/truth``) per sample, the
+        events; truncated to the samples recorded.
+    n_done : int
+        Samples recorded (the fault sample is included when its readings are finite: it shows
+        the fail-safe duties).
+    fault : Event or None
+        The fault that stopped the run.
+    events : list of Event
+        Every event, in time order (warnings, the fault).
+    timing : TimingStats
+        Latencies, and jitter/overruns when paced.
+    state : ndarray
+        The controller state at the end.
+    """
+
+    recording: Recording
+    n_done: int
+    fault: Event | None
+    events: list[Event]
+    timing: TimingStats
+    state: np.ndarray
+
+
+def _wait_until(deadline_ns: int, spin_ns: int) -> int:
+    """Sleep until ``spin_ns`` before the deadline, then spin; return the time of arrival."""
+    while True:
+        now = time.perf_counter_ns()
+        remaining = deadline_ns - now
+        if remaining <= 0:
+            return now
+        if remaining > spin_ns:
+            time.sleep((remaining - spin_ns) * 1e-9)
+
+
+def _warm_up(cfg: np.ndarray, ref: np.ndarray) -> None:
+    """One control step on a scratch state, so that loading the compiled step does not delay
+    the first sample of a paced run."""
+    if ref.shape[0] == 0:
+        return
+    scratch = init_state(cfg, float(ref[0, 0]), 2.0e5, 2.0e5)
+    meas = np.zeros(MEAS_SIZE)
+    meas[1] = ref[0, 0]
+    meas[2:5] = (2.0e5, 2.0e5, 6.0e5)
+    meas[5:8] = ref[0]
+    step_into(scratch, meas, cfg, np.empty(4))
+
+
+def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
+             supervisor: Supervisor | None = None, *, realtime: bool = False,
+             record_truth: bool = False,
+             fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
+             start_tolerance: float = START_TOLERANCE, spin_s: float = 5.0e-4,
+             on_sample: Callable[[int], None] | None = None) -> LoopResult:
+    """Run the controller against a rig for ``len(reference)`` samples (module docstring).
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig (:class:`pneutune.control.rig.protocol.Rig`; ``sample_times()`` and ``truth()`` are
+        used
+        when present). It is not closed here.
+    cfg_vec : (CFG_SIZE,) float64
+        The packed controller config (:func:`pneutune.control.law.layout.pack`).
+    reference : (N, 3) float64
+        ``[x_r, v_r, a_r]`` per sample [m, m/s, m/s^2].
+    supervisor : Supervisor, optional
+        The safety supervisor (reset here); None runs unsupervised (benchmarks only).
+    realtime : bool
+        Pace the loop to wall time.
+    record_truth : bool
+        Record ``rig.truth()`` (simulated rigs) as ``/sim/truth``.
+    fail_safe : 4 floats
+        Duties written on a fault.
+    start_tolerance : float
+        Largest |x(0) - x_r(0)| [m].
+    spin_s : float
+        Realtime: busy-wait this long before each deadline instead of sleeping [s].
+    on_sample : callable, optional
+        Called with k after each sample (progress display).
+
+    Returns
+    -------
+    LoopResult
+    """
+    ref = np.ascontiguousarray(reference, dtype=np.float64)
+    n = ref.shape[0]
+    Ts = float(rig.Ts)
+    cfg = np.ascontiguousarray(cfg_vec, dtype=np.float64)
+    sample_times = getattr(rig, "sample_times", None)
+    truth_fn = getattr(rig, "truth", None) if record_truth else None
+    rec = Recording(n, Ts, truth=truth_fn is not None, reference=True, control_state=True)
+    sensors_out, duties_out, truth_out = rec.sensors_, rec.duties_, rec.truth_
+    state_out = rec.state_ if rec.state_ is not None else np.empty((n, LOG_INDEX.shape[0]))
+    if rec.reference_ is not None:
+        rec.reference_[:] = ref
+    if supervisor is not None:
+        supervisor.reset()
+    fs = np.asarray(fail_safe, dtype=np.float64)
+    meas = np.empty(MEAS_SIZE)
+    duties = np.empty(4)
+    cs = np.empty(0)
+    events: list[Event] = []
+    fault: Event | None = None
+    step_ns = np.zeros(n, dtype=np.int64)
+    loop_ns = np.zeros(n, dtype=np.int64)
+    iter_ns = np.zeros(n, dtype=np.int64)
+    late_ns = np.zeros(n if realtime else 0, dtype=np.int64)
+    period_ns = round(Ts * 1e9)
+    spin_ns = round(spin_s * 1e9)
+    overruns = 0
+    slipped = 0
+    n_done = 0
+    n_timed = 0
+    _warm_up(cfg, ref)
+    wall0 = time.perf_counter_ns()
+    origin = wall0
+    clock = time.perf_counter_ns
+
+    def stop(k: int, t: float, event: Event, sensors: np.ndarray | None) -> int:
+        """Fail-safe duties now; record the sample if its readings are loggable."""
+        try:
+            rig.write(fs)
+        except RigIOError as exc:
+            event = Event(event.t, event.level, event.code,
+                          f"{event.message}; writing the fail-safe duties failed too ({exc})")
+        events.append(Event(event.t, event.level, event.code,
+                            f"{event.message}; fail-safe: valves "
+                            f"[a_in, a_out, b_in, b_out] = {fs.tolist()} from t={t:.4f} s"))
+        if sensors is None or not np.all(np.isfinite(sensors)):
+            return k
+        sensors_out[k] = sensors
+        duties_out[k] = fs
+        if cs.size:
+            state_out[k, :] = cs[LOG_INDEX]
+        else:
+            st0 = init_state(cfg, float(ref[0, 0]), float(sensors[1]), float(sensors[2]))
+            state_out[k, :] = st0[LOG_INDEX]
+        if truth_out is not None and truth_fn is not None:
+            truth_out[k] = truth_fn()
+        return k + 1
+
+    for k in range(n):
+        t = k * Ts
+        if realtime:
+            due = origin + k * period_ns
+            start = _wait_until(due, spin_ns)
+            late = start - due
+            late_ns[k] = late
+            if late > period_ns:  # shift the schedule: no burst of catch-up iterations
+                origin += late
+                slipped += late
+        else:
+            start = clock()
+        try:
+            s = rig.read()
+            stamps = sample_times() if sample_times is not None else None
+        except RigIOError as exc:
+            fault = Event(t, "error", "rig_io", f"reading the rig failed at t={t:.4f} s: {exc}")
+            n_done = stop(k, t, fault, None)
+            break
+        if supervisor is not None:
+            fault = supervisor.check_sensors(t, s, stamps)
+        if fault is None and k == 0 and not abs(float(s[0]) - ref[0, 0]) <= start_tolerance:
+            fault = Event(t, "error", "start_position",
+                          f"the piston is at x = {float(s[0]) * 1e3:.3f} mm, not at the start of "
+                          f"the reference x_r(0) = {ref[0, 0] * 1e3:.3f} mm (tolerance "
+                          f"{start_tolerance * 1e3:g} mm): move it there first")
+        if fault is not None:
+            n_done = stop(k, t, fault, s)
+            break
+        if k == 0:
+            cs = init_state(cfg, float(ref[0, 0]), float(s[1]), float(s[2]))
+        meas[0] = t
+        meas[1:5] = s
+        meas[5:8] = ref[k]
+        t_step = clock()
+        step_into(cs, meas, cfg, duties)
+        t_step_end = clock()
+        try:
+            rig.write(duties)
+        except RigIOError as exc:
+            fault = Event(t, "error", "rig_io", f"writing the duties failed at t={t:.4f} s: {exc}")
+            n_done = stop(k, t, fault, None)
+            break
+        t_written = clock()
+        sensors_out[k] = s
+        duties_out[k] = duties
+        state_out[k, :] = cs[LOG_INDEX]
+        if truth_out is not None and truth_fn is not None:
+            truth_out[k] = truth_fn()
+        if supervisor is not None:
+            events.extend(supervisor.check_estimates(t, float(s[3]), cs[S_THETA:S_THETA + 6]))
+        n_done = k + 1
+        try:
+            rig.advance()
+        except RigIOError as exc:
+            fault = Event(t + Ts, "error", "rig_io",
+                          f"advancing the rig failed at t={t:.4f} s: {exc}")
+            n_done = stop(k + 1, t + Ts, fault, None)
+            break
+        end = clock()
+        step_ns[k] = t_step_end - t_step
+        loop_ns[k] = t_written - start
+        iter_ns[k] = end - start
+        n_timed = k + 1
+        if realtime and end > origin + (k + 1) * period_ns:
+            overruns += 1
+            if overruns == 1:
+                over_us = (end - origin - (k + 1) * period_ns) / 1e3
+                events.append(Event(t, "warning", "deadline_overrun",
+                                    f"iteration at t={t:.4f} s took {(end - start) / 1e3:.0f} µs "
+                                    f"and ended {over_us:.0f} µs after the next sample was due "
+                                    f"(Ts = {Ts * 1e3:g} ms)"))
+        if on_sample is not None:
+            on_sample(k)
+    wall = time.perf_counter_ns() - wall0
+    if fault is not None:  # the logged form, which also names the fail-safe duties
+        fault = next(e for e in events if e.level == "error")
+    rec.truncate(n_done)
+    events.sort(key=lambda e: e.t)
+    for e in events:
+        rec.event(e.t, e.level, e.code, e.message)
+    timing = _stats(step_ns[:n_timed], loop_ns[:n_timed], iter_ns[:n_timed],
+                    late_ns[:n_timed], realtime, overruns, slipped, wall)
+    return LoopResult(rec, n_done, fault, events, timing, cs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenarios
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DeployResult:
+    """One scenario deployed on a rig.
+
+    Attributes
+    ----------
+    scenario : Scenario
+        What was tracked.
+    controller : ControllerConfig
+        The deployed config.
+    loop : LoopResult
+        The loop's output (recording, events, timing).
+    metrics : Metrics
+        The paper's indices over what ran (status ``ok`` or ``fault``).
+    rig_meta : dict
+        The rig's ``rig`` block (written to the log).
+    plant : PlantConfig or None
+        The simulated plant (with the scenario's changes), when the rig is simulated.
+    seed : int or None
+        The simulated rig's noise seed.
+    """
+
+    scenario: Scenario
+    controller: ControllerConfig
+    loop: LoopResult
+    metrics: Metrics
+    rig_meta: dict[str, float | str]
+    plant: PlantConfig | None = None
+    seed: int | None = None
+    run_meta: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def fault(self) -> Event | None:
+        """The fault that stopped the run, if any."""
+        return self.loop.fault
+
+    def save_log(self, path: str, run: Mapping[str, str] | None = None) -> None:
+        """Write the run as an MCAP log (contract 1), atomically.
+
+        Parameters
+        ----------
+        path : str
+            Destination.
+        run : mapping, optional
+            Extra ``run`` metadata (merged over :attr:`run_meta`).
+        """
+        meta = dict(self.run_meta)
+        meta.update(run or {})
+        self.loop.recording.save(path, rig=self.rig_meta, run=meta)
+
+    def closed_loop_result(self) -> ClosedLoopResult:
+        """The run as a :class:`~pneutune.control.sim.closed_loop.ClosedLoopResult` (for plots)."""
+        rec = self.loop.recording
+        plant = self.plant if self.plant is not None else PlantConfig()
+        return ClosedLoopResult(self.scenario, plant, self.controller, self.seed or 0, rec.Ts,
+                                rec.reference_, rec.sensors_, rec.duties_, rec.state_,
+                                rec.truth_, self.metrics)
+
+
+def scenario_reference(scenario: Scenario, rig_meta: Mapping[str, float | str]) -> np.ndarray:
+    """The scenario's reference at the rig's Ts, centred at the rig's mid-stroke, (N, 3)."""
+    x_min, x_max = float(rig_meta["x_min"]), float(rig_meta["x_max"])
+    return scenario.reference_array(float(rig_meta["Ts"]), 0.5 * (x_min + x_max))
+
+
+def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
+                 supervisor: Supervisor | None = None, realtime: bool = False,
+                 record_truth: bool = False, cfg_vec: np.ndarray | None = None,
+                 fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
+                 duration: float | None = None, plant: PlantConfig | None = None,
+                 seed: int | None = None,
+                 on_sample: Callable[[int], None] | None = None) -> DeployResult:
+    """Deploy ``controller`` on ``rig`` for one scenario and compute the metrics.
+
+    Parameters
+    ----------
+    controller : ControllerConfig
+        The config (already checked against the rig).
+    scenario : Scenario
+        What to track. Its plant changes (payload, force steps) are the rig's business: a
+        simulated rig must have been built with them (:func:`sim_rig_for`).
+    rig : Rig
+        The rig; ``rig_metadata()`` is used when present (else the controller's rig block).
+    supervisor : Supervisor, optional
+        Default: one from the controller's ``limits`` (:meth:`SupervisorSettings.from_controller`).
+    realtime, record_truth, fail_safe
+        As :func:`run_loop`.
+    cfg_vec : ndarray, optional
+        Pre-packed controller.
+    duration : float, optional
+        Run only the first ``duration`` seconds of the scenario [s].
+    plant, seed : optional
+        The simulated plant and seed, kept in the result (logs, plots).
+    on_sample : callable, optional
+        Progress callback.
+
+    Returns
+    -------
+    DeployResult
+    """
+    meta_fn = getattr(rig, "rig_metadata", None)
+    rig_meta = dict(meta_fn()) if meta_fn is not None else controller.rig.model_dump()
+    ref = scenario_reference(scenario, rig_meta)
+    if duration is not None:
+        ref = ref[:max(1, round(duration / float(rig_meta["Ts"])))]
+    sup = supervisor if supervisor is not None else Supervisor(
+        SupervisorSettings.from_controller(controller))
+    cfg = pack(controller) if cfg_vec is None else cfg_vec
+    loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
+                    fail_safe=fail_safe, on_sample=on_sample)
+    rec = loop.recording
+    a = controller.adaptation
+    status = STATUS_FAULT if loop.fault is not None else "ok"
+    metrics = compute_metrics(scenario, rec.Ts, ref, rec.sensors_, rec.duties_, rec.state_,
+                              np.asarray(a.theta_min), np.asarray(a.theta_max),
+                              float(rig_meta["x_min"]), float(rig_meta["x_max"]), status)
+    rec.segments_.insert(0, (0.0, scenario.name, "scenario",
+                             {"description": scenario.description,
+                              "duration": float(ref.shape[0] * rec.Ts)}))
+    run_meta = {"scenario": scenario.name, "variant": controller.variant,
+                "status": status, "realtime": str(bool(realtime)).lower()}
+    if seed is not None:
+        run_meta["seed"] = str(seed)
+    if loop.fault is not None:
+        run_meta["fault"] = loop.fault.code
+    return DeployResult(scenario, controller, loop, metrics, rig_meta, plant, seed, run_meta)
+
+
+def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
+                seed: int | None = None, rig_class: type[DeploySimRig] = DeploySimRig,
+                **rig_kwargs: Any) -> tuple[DeploySimRig, PlantConfig, int]:
+    """The simulated rig set up for a scenario, as ``simulate --controller`` sets it up.
+
+    The plant gets the scenario's changes
+    (:func:`~pneutune.control.sim.closed_loop.scenario_plant`);
+    the piston rests at x_r(0) with the chamber pressures in force balance; the noise seed is
+    ``seed`` or the plant's ``sim.seed``.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        The scenario.
+    plant_cfg : PlantConfig, optional
+        The plant; default the paper's rig.
+    seed : int, optional
+        Sensor-noise seed.
+    rig_class : type
+        :class:`DeploySimRig` or a subclass (e.g.
+        :class:`pneutune.control.rig.faults.FaultySimRig`).
+    **rig_kwargs
+        Further arguments of ``rig_class`` (e.g. ``faults``).
+
+    Returns
+    -------
+    (rig, plant, seed)
+    """
+    base = plant_cfg if plant_cfg is not None else PlantConfig()
+    pcfg = scenario_plant(base, scenario)
+    seed_used = pcfg.sim.seed if seed is None else int(seed)
+    ref0 = scenario_reference(scenario, pcfg.rig_metadata())[0, 0]
+    rig = rig_class(pcfg, x0=float(ref0), seed=seed_used, **rig_kwargs)
+    return rig, pcfg, seed_used
+
+
+__all__ = ["START_TOLERANCE", "STATUS_FAULT", "DeployResult", "LoopResult", "TimingStats",
+           "run_loop", "run_scenario", "scenario_reference", "sim_rig_for"]

@@ -1,0 +1,78 @@
+"""The rig interface and the simulated rig.
+
+A rig is whatever the runtime talks to: it is sampled every ``Ts``, takes four duties and has a
+clock. :class:`SimRig` is the in-process simulated rig over the compiled plant
+(:mod:`pneutune.control.plant.dynamics`); a hardware driver implements the same three calls.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.plant import dynamics as plant
+from pneutune.control.plant.params import P_TS, PlantParams, pack_plant
+
+
+class SimRig:
+    """The simulated rig: the compiled plant with sensors, in this process.
+
+    Parameters
+    ----------
+    plant_cfg : PlantConfig or PlantParams
+        The plant.
+    x0 : float, optional
+        Initial position [m]; default mid-stroke. The piston starts at rest with the chamber
+        pressures of :func:`~pneutune.control.plant.dynamics.rest_pressures` (force balance, B at
+        ambient) unless
+        ``pressures0`` is given.
+    pressures0 : (float, float), optional
+        Initial (p_a, p_b) [Pa abs].
+    seed : int, optional
+        Seed of the sensor noise; default ``sim.seed`` of the plant.
+    """
+
+    def __init__(self, plant_cfg: PlantConfig | PlantParams, x0: float | None = None,
+                 pressures0: tuple[float, float] | None = None, seed: int | None = None) -> None:
+        self.params = plant_cfg if isinstance(plant_cfg, PlantParams) else pack_plant(plant_cfg)
+        cfg = self.params.config
+        p = self.params.vec
+        self.Ts = float(p[P_TS])
+        if x0 is None:
+            x0 = 0.5 * (cfg.rig.x_min + cfg.rig.x_max)
+        f0 = float(plant.external_force(p, self.params.force_steps, 0.0))
+        pa0, pb0 = pressures0 if pressures0 is not None else plant.rest_pressures(p, f0)
+        self.state = plant.initial_state(p, float(x0), pa0, pb0)
+        self.rng = np.random.default_rng(self.params.seed if seed is None else seed)
+        self.k = 0
+        self.supply = float(self.params.p_s)
+        self._sensors = np.zeros(4)
+        self._truth = np.zeros(6)
+
+    @property
+    def t(self) -> float:
+        """Time of the current sample [s]."""
+        return self.k * self.Ts
+
+    def read(self) -> np.ndarray:
+        """Sensors at the current sample: [x, p_a, p_b, p_s] (noisy, quantised)."""
+        plant.measure(self.params.vec, self.state, self.supply, self.rng.standard_normal(4),
+                      self._sensors)
+        return self._sensors.copy()
+
+    def truth(self) -> np.ndarray:
+        """True [v, a, F_friction, F_ext, mdot_a, mdot_b] at the current sample."""
+        plant.truth(self.params.vec, self.state, self.supply, self.params.force_steps,
+                    self._truth)
+        return self._truth.copy()
+
+    def write(self, duties: np.ndarray) -> None:
+        """Command the four duties from now on."""
+        plant.set_duties(self.params.vec, self.state, self.t,
+                         np.ascontiguousarray(duties, dtype=np.float64))
+
+    def advance(self) -> None:
+        """Integrate the plant to the next sample."""
+        plant.advance(self.params.vec, self.state, (self.k + 1) * self.Ts, self.supply,
+                      self.params.force_steps)
+        self.k += 1

@@ -1,0 +1,294 @@
+"""Plant and controller at Ts, compiled as one loop, and the paper's metrics.
+
+:func:`run_kernel` is the inner loop of tuning: per sample it measures (noisy sensors), calls
+the one controller step (:func:`pneutune.control.law.darc.step_into`), writes the duties and
+advances the plant (:func:`pneutune.control.plant.dynamics.advance`) to the next sample. Nothing
+else.
+
+:func:`simulate_scenario` wraps it: it builds the plant for a scenario (payload, force steps),
+starts the piston at rest where the reference starts with the chamber pressures in force
+balance (:func:`pneutune.control.plant.dynamics.rest_pressures`), runs and computes
+:class:`Metrics`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.law.darc import (
+    CONTROL_STATE_FIELDS,
+    MEAS_SIZE,
+    S_THETA,
+    init_state,
+    step_into,
+)
+from pneutune.control.law.layout import pack
+from pneutune.control.logs.recording import Recording
+from pneutune.control.plant import dynamics as plant
+from pneutune.control.plant.dynamics import rest_pressures
+from pneutune.control.plant.params import S_PA, S_PB, S_V, S_X, pack_plant
+from pneutune.control.sim.scenarios import Scenario
+
+#: State indices logged on ``/control/state``: the named fields, then θ̂ (6).
+LOG_INDEX = np.array([*CONTROL_STATE_FIELDS.values(), *range(S_THETA, S_THETA + 6)],
+                     dtype=np.int64)
+
+STATUS_OK, STATUS_UNSTABLE, STATUS_ABORTED = "ok", "unstable", "aborted"
+
+
+@njit(cache=True)
+def run_kernel(p: np.ndarray, s: np.ndarray, force_steps: np.ndarray, p_s: np.ndarray,
+               cfg: np.ndarray, cs: np.ndarray, ref: np.ndarray, noise: np.ndarray, Ts: float,
+               log_index: np.ndarray, abort_error: float, sensors: np.ndarray,
+               duties: np.ndarray, cstate: np.ndarray, truth_out: np.ndarray) -> int:
+    """Run the closed loop over ``ref.shape[0]`` samples.
+
+    Parameters
+    ----------
+    p, s, force_steps : ndarray
+        Packed plant, plant state (updated) and force steps.
+    p_s : ndarray, (N,)
+        Supply pressure per sample [Pa abs].
+    cfg, cs : ndarray
+        Packed controller config and controller state (updated).
+    ref : ndarray, (N, 3)
+        ``[x_r, v_r, a_r]`` per sample.
+    noise : ndarray, (N, 4)
+        Standard-normal draws for the sensors.
+    Ts : float
+        Sampling period [s].
+    log_index : ndarray of int
+        Controller-state indices to record per sample in ``cstate``.
+    abort_error : float
+        Stop early when the measured |e1| exceeds this [m] (use inf to never abort).
+    sensors, duties, cstate : ndarray
+        Outputs (N, 4), (N, 4), (N, len(log_index)).
+    truth_out : ndarray
+        (N, 6) to record ``/sim/truth``, or (0, 6) not to.
+
+    Returns
+    -------
+    int
+        Samples completed ``n`` if all went well; ``-(k+1)`` if the plant state became
+        non-finite at sample k (unstable); ``-(n + 1 + k)`` if aborted at sample k on
+        ``abort_error``.
+    """
+    n = ref.shape[0]
+    meas = np.empty(MEAS_SIZE)
+    d = np.empty(4)
+    want_truth = truth_out.shape[0] > 0
+    for k in range(n):
+        t = k * Ts
+        plant.measure(p, s, p_s[k], noise[k], sensors[k])
+        if want_truth:
+            plant.truth(p, s, p_s[k], force_steps, truth_out[k])
+        meas[0] = t
+        meas[1] = sensors[k, 0]
+        meas[2] = sensors[k, 1]
+        meas[3] = sensors[k, 2]
+        meas[4] = sensors[k, 3]
+        meas[5] = ref[k, 0]
+        meas[6] = ref[k, 1]
+        meas[7] = ref[k, 2]
+        step_into(cs, meas, cfg, d)
+        for i in range(4):
+            duties[k, i] = d[i]
+        for j in range(log_index.shape[0]):
+            cstate[k, j] = cs[log_index[j]]
+        plant.set_duties(p, s, t, d)
+        plant.advance(p, s, (k + 1) * Ts, p_s[k], force_steps)
+        if not (np.isfinite(s[S_X]) and np.isfinite(s[S_V]) and np.isfinite(s[S_PA])
+                and np.isfinite(s[S_PB])):
+            return -(k + 1)
+        if abs(sensors[k, 0] - ref[k, 0]) > abort_error:
+            return -(n + 1 + k)
+    return n
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """The paper's indices (Sec. 5.1) and the health of a closed-loop run.
+
+    Attributes
+    ----------
+    E_p_mm, E_rms_mm : float
+        Peak and RMS of the measured tracking error e1 over the last three reference periods
+        [mm].
+    switches_per_s : float
+        Valve mode changes (modes 1, 2, 3 of Sec. 3.2) per second over the same window.
+    p_a_max_Pa, p_b_max_Pa, p_a_min_Pa, p_b_min_Pa : float
+        Measured chamber pressure extremes over the whole run [Pa abs].
+    theta_in_bounds : bool
+        θ̂ stayed within [θ_min, θ_max] at every sample.
+    end_stop_s : float
+        Time the measured position spent within 0.2 mm of a stroke end [s].
+    status : str
+        ok | unstable | aborted.
+    """
+
+    E_p_mm: float
+    E_rms_mm: float
+    switches_per_s: float
+    p_a_max_Pa: float
+    p_b_max_Pa: float
+    p_a_min_Pa: float
+    p_b_min_Pa: float
+    theta_in_bounds: bool
+    end_stop_s: float
+    status: str
+
+    def as_dict(self) -> dict[str, float | bool | str]:
+        """Plain dict (the metrics object of DESIGN.md plus the extra fields)."""
+        return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class ClosedLoopResult:
+    """Everything one closed-loop run produced (arrays are per sample, truncated at a stop)."""
+
+    scenario: Scenario
+    plant: PlantConfig
+    controller: ControllerConfig
+    seed: int
+    Ts: float
+    reference: np.ndarray
+    sensors: np.ndarray
+    duties: np.ndarray
+    control_state: np.ndarray
+    truth: np.ndarray | None
+    metrics: Metrics
+
+    @property
+    def t(self) -> np.ndarray:
+        """Sample times [s]."""
+        return np.arange(self.sensors.shape[0]) * self.Ts
+
+    def recording(self) -> Recording:
+        """The run as a :class:`Recording` (for an MCAP log)."""
+        n = self.sensors.shape[0]
+        rec = Recording(n, self.Ts, truth=self.truth is not None, reference=True,
+                        control_state=True)
+        rec.sensors_[:] = self.sensors
+        rec.duties_[:] = self.duties
+        rec.reference_[:] = self.reference[:n]
+        rec.state_[:] = self.control_state
+        if self.truth is not None:
+            rec.truth_[:] = self.truth
+        rec.segment(0.0, self.scenario.name, "scenario",
+                    {"description": self.scenario.description,
+                     "duration": self.scenario.duration})
+        if self.metrics.status != STATUS_OK:
+            rec.event(n * self.Ts, "error", f"run_{self.metrics.status}",
+                      f"the closed loop stopped after {n} samples ({self.metrics.status})")
+        return rec
+
+
+def valve_modes(duties: np.ndarray) -> np.ndarray:
+    """Mode per sample: 1 (a_in/b_out open), 2 (a_out/b_in open), 3 (all closed)."""
+    mode1 = (duties[:, 0] > 0.0) | (duties[:, 3] > 0.0)
+    mode2 = (duties[:, 1] > 0.0) | (duties[:, 2] > 0.0)
+    return np.where(mode1, 1, np.where(mode2, 2, 3))
+
+
+def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensors: np.ndarray,
+                    duties: np.ndarray, control_state: np.ndarray, theta_min: np.ndarray,
+                    theta_max: np.ndarray, x_min: float, x_max: float, status: str) -> Metrics:
+    """The indices of Sec. 5.1 over the last three periods, plus health checks."""
+    n = sensors.shape[0]
+    window = min(n, round(3.0 * scenario.period / Ts))
+    nan = float("nan")
+    if n == 0:
+        return Metrics(nan, nan, nan, nan, nan, nan, nan, False, nan, status)
+    e1 = sensors[n - window:, 0] - reference[n - window:n, 0]
+    modes = valve_modes(duties[n - window:])
+    switches = float(np.count_nonzero(np.diff(modes))) / (window * Ts)
+    theta = control_state[:, -6:]
+    tol = 1e-12 * np.maximum(1.0, np.abs(theta_max - theta_min))
+    in_bounds = bool(np.all((theta >= theta_min - tol) & (theta <= theta_max + tol)))
+    x = sensors[:, 0]
+    near = (x <= x_min + 2e-4) | (x >= x_max - 2e-4)
+    return Metrics(
+        E_p_mm=float(np.max(np.abs(e1)) * 1e3),
+        E_rms_mm=float(np.sqrt(np.mean(e1**2)) * 1e3),
+        switches_per_s=switches,
+        p_a_max_Pa=float(np.max(sensors[:, 1])), p_b_max_Pa=float(np.max(sensors[:, 2])),
+        p_a_min_Pa=float(np.min(sensors[:, 1])), p_b_min_Pa=float(np.min(sensors[:, 2])),
+        theta_in_bounds=in_bounds, end_stop_s=float(np.count_nonzero(near) * Ts),
+        status=status,
+    )
+
+
+def scenario_plant(plant_cfg: PlantConfig, scenario: Scenario) -> PlantConfig:
+    """The plant with the scenario's changes (payload, force steps) merged in."""
+    if not scenario.plant_updates:
+        return plant_cfg
+    return plant_cfg.with_updates(scenario.plant_updates, source=f"scenario {scenario.name}")
+
+
+def simulate_scenario(controller: ControllerConfig, scenario: Scenario,
+                      plant_cfg: PlantConfig | None = None, seed: int | None = None,
+                      record_truth: bool = False, abort_error: float = np.inf,
+                      cfg_vec: np.ndarray | None = None) -> ClosedLoopResult:
+    """Run one scenario in closed loop on the simulated rig.
+
+    Parameters
+    ----------
+    controller : ControllerConfig
+        The controller.
+    scenario : Scenario
+        What to track (and the plant changes it implies).
+    plant_cfg : PlantConfig, optional
+        The plant; default the paper's rig.
+    seed : int, optional
+        Sensor-noise seed; default the plant's ``sim.seed``.
+    record_truth : bool
+        Keep ``/sim/truth``.
+    abort_error : float
+        Stop when |e1| exceeds this [m] (tuning prunes hopeless trials with it).
+    cfg_vec : ndarray, optional
+        Pre-packed ``controller`` (saves the packing in tight loops).
+
+    Returns
+    -------
+    ClosedLoopResult
+    """
+    base = plant_cfg if plant_cfg is not None else PlantConfig()
+    pcfg = scenario_plant(base, scenario)
+    pp = pack_plant(pcfg)
+    Ts = pcfg.rig.Ts
+    center = 0.5 * (pcfg.rig.x_min + pcfg.rig.x_max)
+    ref = scenario.reference_array(Ts, center)
+    n = ref.shape[0]
+    rng = np.random.default_rng(pcfg.sim.seed if seed is None else seed)
+    noise = rng.standard_normal((n, 4))
+    f0 = float(plant.external_force(pp.vec, pp.force_steps, 0.0))
+    pa0, pb0 = rest_pressures(pp.vec, f0)
+    s = plant.initial_state(pp.vec, float(ref[0, 0]), pa0, pb0)
+    cfg = pack(controller) if cfg_vec is None else cfg_vec
+    cs = init_state(cfg, float(ref[0, 0]), pa0, pb0)
+    sensors = np.zeros((n, 4))
+    duties = np.zeros((n, 4))
+    cstate = np.zeros((n, LOG_INDEX.shape[0]))
+    truth = np.zeros((n if record_truth else 0, 6))
+    p_s = np.full(n, pp.p_s)
+    code = run_kernel(pp.vec, s, pp.force_steps, p_s, cfg, cs, ref, noise, Ts, LOG_INDEX,
+                      float(abort_error), sensors, duties, cstate, truth)
+    if code >= 0:
+        done, status = code, STATUS_OK
+    elif -code <= n:
+        done, status = -code, STATUS_UNSTABLE
+    else:
+        done, status = -code - n, STATUS_ABORTED
+    a = controller.adaptation
+    metrics = compute_metrics(scenario, Ts, ref, sensors[:done], duties[:done], cstate[:done],
+                              np.asarray(a.theta_min), np.asarray(a.theta_max),
+                              pcfg.rig.x_min, pcfg.rig.x_max, status)
+    seed_used = pcfg.sim.seed if seed is None else seed
+    return ClosedLoopResult(scenario, pcfg, controller, seed_used, Ts, ref, sensors[:done],
+                            duties[:done], cstate[:done], truth[:done] if record_truth else None,
+                            metrics)

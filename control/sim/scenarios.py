@@ -1,0 +1,134 @@
+"""Reference trajectories and the closed-loop scenarios of the paper's Sec. 5 (Table 1, Fig. 17).
+
+All trajectories are centred at mid-stroke (23.5 mm on the paper's rig; DESIGN.md) and are
+returned as ``(N, 3)`` arrays of ``[x_r, v_r, a_r]`` in m, m/s, m/s^2.
+
+The paper does not give the smooth square's edges: here each edge is a quintic
+``s(τ) = 10τ³ - 15τ⁴ + 6τ⁵`` of 0.8 s (peak speed 1.875·2A/0.8 = 82 mm/s and peak acceleration
+5.77·2A/0.8² = 0.32 m/s² for A = 17.5 mm, well within the valves' flow), holding each level for
+the remaining 0.2 s of the half period. It starts at the low level, where the piston rests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pneutune.control.errors import ExperimentError
+
+AMPLITUDE = 0.0175  #: Table 1 amplitude [m]
+EDGE = 0.8  #: smooth-square edge duration [s]
+
+
+def sine(t: np.ndarray, center: float, amplitude: float, freq: float) -> np.ndarray:
+    """``center + amplitude sin(2π f t)`` with its derivatives, shape (N, 3)."""
+    w = 2.0 * np.pi * freq
+    return np.column_stack([center + amplitude * np.sin(w * t), amplitude * w * np.cos(w * t),
+                            -amplitude * w * w * np.sin(w * t)])
+
+
+def smooth_square(t: np.ndarray, center: float, amplitude: float, freq: float,
+                  edge: float = EDGE) -> np.ndarray:
+    """Square wave with quintic edges of ``edge`` seconds, low level first, shape (N, 3)."""
+    period = 1.0 / freq
+    half = 0.5 * period
+    if not 0.0 < edge <= half:
+        raise ExperimentError(f"the edge must be in (0, half period = {half} s], got {edge}")
+    tau = np.mod(t, period)
+    rising = tau < half
+    local = np.where(rising, tau, tau - half)
+    z = np.clip(local / edge, 0.0, 1.0)
+    s = z**3 * (10.0 - 15.0 * z + 6.0 * z * z)
+    ds = 30.0 * z**2 * (1.0 - z) ** 2 / edge
+    dds = 60.0 * z * (1.0 - z) * (1.0 - 2.0 * z) / edge**2
+    ds = np.where(local < edge, ds, 0.0)
+    dds = np.where(local < edge, dds, 0.0)
+    sign = np.where(rising, 1.0, -1.0)
+    x = center + amplitude * sign * (2.0 * s - 1.0)
+    return np.column_stack([x, 2.0 * amplitude * sign * ds, 2.0 * amplitude * sign * dds])
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A closed-loop test case.
+
+    Attributes
+    ----------
+    name : str
+        Command-line name.
+    description : str
+        One line for tables.
+    duration : float
+        [s].
+    period : float
+        Period of the reference [s]; the metrics cover the last three.
+    reference : callable
+        ``(t, center) -> (N, 3)`` array of ``[x_r, v_r, a_r]``.
+    plant_updates : dict
+        Changes to the plant (payload, force steps) deep-merged into plant.yaml.
+    paper : (float, float) or None
+        The paper's Table 1 (E_p, E_rms) in mm, measured on the rig.
+    """
+
+    name: str
+    description: str
+    duration: float
+    period: float
+    reference: Callable[[np.ndarray, float], np.ndarray]
+    plant_updates: dict[str, Any] = field(default_factory=dict)
+    paper: tuple[float, float] | None = None
+
+    def samples(self, Ts: float) -> int:
+        """Number of samples at period ``Ts``."""
+        return round(self.duration / Ts)
+
+    def reference_array(self, Ts: float, center: float) -> np.ndarray:
+        """The reference at every sample, (N, 3)."""
+        return self.reference(np.arange(self.samples(Ts)) * Ts, center)
+
+
+def _sine_ref(freq: float) -> Callable[[np.ndarray, float], np.ndarray]:
+    return lambda t, c: sine(t, c, AMPLITUDE, freq)
+
+
+SCENARIOS: dict[str, Scenario] = {
+    s.name: s
+    for s in (
+        Scenario("sine-0.5hz", "17.5 sin(πt) mm, M = 1.05 kg", 12.0, 2.0, _sine_ref(0.5),
+                 {}, (0.42, 0.19)),
+        Scenario("sine-0.75hz", "17.5 sin(1.5πt) mm, M = 1.05 kg", 12.0, 1.0 / 0.75,
+                 _sine_ref(0.75), {}, (0.53, 0.23)),
+        Scenario("sine-0.5hz-heavy", "17.5 sin(πt) mm, +1.136 kg payload (M ≈ 2.18 kg)", 12.0,
+                 2.0, _sine_ref(0.5), {"payload": 1.136}, (0.45, 0.20)),
+        Scenario("square-0.5hz", "smooth square 0.5 Hz, 17.5 mm, 0.8 s quintic edges", 12.0,
+                 2.0, lambda t, c: smooth_square(t, c, AMPLITUDE, 0.5), {}, (0.38, 0.16)),
+        Scenario("disturbance-0.5hz", "17.5 sin(πt) mm; 30 N at 7.6 s, 80 N at 9.8 s, 0 at 11.9 s",
+                 14.0, 2.0, _sine_ref(0.5),
+                 {"disturbance": {"force_steps": [[7.6, 30.0], [9.8, 80.0], [11.9, 0.0]]}},
+                 None),
+    )
+}
+#: Scenario groups accepted by ``--scenario``.
+GROUPS: dict[str, tuple[str, ...]] = {
+    "table1": ("sine-0.5hz", "sine-0.75hz", "sine-0.5hz-heavy", "square-0.5hz"),
+    "all": tuple(SCENARIOS),
+}
+
+
+def resolve_scenarios(name: str) -> list[Scenario]:
+    """Scenarios for a ``--scenario`` value: one name, ``table1`` or ``all``.
+
+    Raises
+    ------
+    ExperimentError
+        Unknown name (the message lists the known ones).
+    """
+    if name in GROUPS:
+        return [SCENARIOS[n] for n in GROUPS[name]]
+    if name in SCENARIOS:
+        return [SCENARIOS[name]]
+    known = ", ".join([*SCENARIOS, *GROUPS])
+    raise ExperimentError(f"unknown scenario {name!r}; expected one of: {known}")
