@@ -1,47 +1,24 @@
-"""``tune``: robust Optuna tuning of the modified DARC in closed-loop simulation."""
+"""``tune``: robust Optuna tuning of the modified DARC in closed-loop simulation.
+
+A thin shell over :func:`pneutune.tune.api.tune`: the flags become :class:`TuneSettings`, the
+result is printed (prose on stderr, one JSON object on stdout with ``--json``).
+"""
 
 from __future__ import annotations
 
-import dataclasses
-import datetime as _dt
-import os
 import sys
 from collections.abc import Sequence
-from importlib import metadata
-from pathlib import Path
-from typing import Any
 
 from tqdm import tqdm
 
 from pneutune.control.cli.common import info, make_parser, print_json, run_cli
-from pneutune.control.contracts.atomic import sha256_file
-from pneutune.control.contracts.controller import (
-    PAPER_CONTROLLER,
-    ProvenanceConfig,
-    load_controller,
-    save_controller,
-)
-from pneutune.control.contracts.model import load_model
-from pneutune.control.contracts.yamlio import write_yaml
-from pneutune.control.errors import ConfigError
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
-from .feasibility import InfeasibleModelError, check_feasibility
-from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError, TuneObjective
-from .report import compare, write_report
-from .space import controller_from_params, search_space
-from .study import (
-    DEFAULT_JOURNAL,
-    StudySpec,
-    default_study_name,
-    finished,
-    run_study,
-    storage_scheme,
-)
-from .study import _redact as redact
+from .api import DEFAULT_OUT, TuneSettings, tune
+from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError
+from .study import DEFAULT_JOURNAL
 
 DEFAULT_MODEL = "reports/identify/model.yaml"
-DEFAULT_OUT = "reports/tune"
 
 DESCRIPTION = """\
 Tune the modified DARC (Qian et al. 2014, Secs. 3-5) on an identified model (model.yaml,
@@ -74,21 +51,6 @@ repeats the objective's nominal runs).
 """
 
 
-def _version() -> str:
-    try:
-        return metadata.version("pneutune")
-    except metadata.PackageNotFoundError:  # pragma: no cover - not installed
-        return "unknown"
-
-
-def _cpus() -> int:
-    """CPUs this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
 def _scenarios(value: str) -> tuple[str, ...]:
     names: list[str] = []
     for part in value.split(","):
@@ -102,36 +64,6 @@ def _scenarios(value: str) -> tuple[str, ...]:
             raise TuneError(f"--scenarios: unknown scenario {part!r}; expected a comma-separated "
                             f"list of: {known}")
     return tuple(dict.fromkeys(names))
-
-
-def failure_summary(study: Any) -> str:
-    """Why the trials of a study failed, most frequent first (``user_attrs["failure"]``)."""
-    reasons: dict[str, int] = {}
-    for t in study.get_trials(deepcopy=False):
-        why = t.user_attrs.get("failure")
-        if why:
-            reasons[why] = reasons.get(why, 0) + 1
-    if not reasons:
-        return "no failure recorded (every trial was pruned by the median rule)"
-    top = sorted(reasons.items(), key=lambda kv: -kv[1])[:3]
-    return "; ".join(f"{n}x {why}" for why, n in top)
-
-
-def provenance(model_sha256: str, study: str, trial: int, value: float, seed: int,
-               notes: Sequence[str] = ()) -> dict[str, Any]:
-    """The provenance block (``seed`` and ``notes`` only if this pneutune's contract 4 has
-    those keys)."""
-    prov: dict[str, Any] = {
-        "model_sha256": model_sha256, "study": study, "trial": int(trial),
-        "objective": float(value),
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "version": _version(),
-    }
-    if "seed" in ProvenanceConfig.model_fields:
-        prov["seed"] = int(seed)
-    if notes and "notes" in ProvenanceConfig.model_fields:
-        prov["notes"] = list(notes)
-    return prov
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -167,45 +99,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (progress and prose on stderr)")
     args = parser.parse_args(argv)
-
-    if args.trials < 1:
-        raise TuneError(f"--trials must be >= 1, got {args.trials}")
-    if args.workers < 1:
-        raise TuneError(f"--workers must be >= 1, got {args.workers}")
-    if args.seed < 0:
-        raise TuneError(f"--seed must be >= 0, got {args.seed}")
-    if args.jobs is not None and args.jobs < 1:
-        raise TuneError(f"--jobs must be >= 1, got {args.jobs}")
-    model_path = Path(args.model)
-    if not model_path.is_file():
-        raise ConfigError(str(model_path), "", "no such model file; run identify first "
-                          "(`identify LOG.mcap` writes reports/identify/model.yaml) or pass "
-                          "--model M.yaml")
-    model = load_model(model_path)
-    model_sha = sha256_file(model_path)
-    try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
-        controller_from_params(model, search_space(model).paper_params())
-    except ConfigError as exc:
-        raise ConfigError(str(model_path), exc.key, "cannot make a controller.yaml from this "
-                          f"model: {exc.message}") from None
-    settings = ObjectiveSettings(scenarios=_scenarios(args.scenarios), n_draws=args.draws,
-                                 duration=args.duration)
-    out = Path(args.out)
-    storage = args.storage if args.storage else str(out / DEFAULT_JOURNAL)
-    storage_scheme(storage)  # an unknown scheme is bad input before any simulation
-    try:
-        feas = check_feasibility(model, args.seed, settings,
-                                 progress=lambda line: info(f"  {line}"))
-    except InfeasibleModelError as exc:
-        raise ConfigError(str(model_path), "", str(exc)) from None
-    settings = dataclasses.replace(settings, box=feas.box)
-    study_name = args.study or default_study_name(model_sha, args.seed)
-    jobs = args.jobs if args.jobs is not None else (
-        min(_cpus(), settings.n_draws) if args.workers == 1 else 1)
-    spec = StudySpec(storage, study_name, args.seed, args.trials, args.workers, model_sha,
-                     settings, jobs,
-                     extra_first=None if feas.paper_failure is None else feas.reference_params)
-
+    settings = TuneSettings(
+        trials=args.trials, out=args.out, storage=args.storage, study=args.study,
+        workers=args.workers, jobs=args.jobs, seed=args.seed,
+        objective=ObjectiveSettings(scenarios=_scenarios(args.scenarios), n_draws=args.draws,
+                                    duration=args.duration))
     bar = tqdm(total=args.trials, desc="tune", unit="trial", file=sys.stderr, disable=None,
                leave=False)
 
@@ -215,83 +113,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         bar.refresh()
 
     try:
-        summary = run_study(spec, model, progress=progress)
+        result = tune(args.model, settings, progress=progress,
+                      notes=lambda line: info(f"  {line}"))
     finally:
         bar.close()
-    study = summary.study
-    counts = summary.counts_after
-    complete = [t for t in study.get_trials(deepcopy=False) if t.state.name == "COMPLETE"]
-    if not complete:
-        raise ConfigError(str(model_path), "", f"study {study_name!r}: no trial completed "
-                          f"({counts['PRUNED']} pruned, {counts['FAIL']} failed): "
-                          f"{failure_summary(study)}; check the model's ranges and fit")
-    best = study.best_trial
-
-    prov = provenance(model_sha, study_name, best.number, float(best.value), args.seed,
-                      feas.notes())
-    tuned = controller_from_params(model, best.params, prov)
-    paper_path = PAPER_CONTROLLER
-    paper = load_controller(paper_path)
-
-    objective = TuneObjective(model, args.seed, settings)
-    comp = compare(objective, tuned, paper)
-    out.mkdir(parents=True, exist_ok=True)
-    controller_path = out / "controller.yaml"
-    header = (f"Tuned by `tune` (pneutune {prov['version']}): study {study_name}, trial "
-              f"{best.number}, objective {best.value:.6g}, seed {args.seed}.\n"
-              f"Model {model_path} (sha256 {model_sha}).\n"
-              f"Nominal runs: simulate --controller {controller_path} --plant "
-              f"{out / 'plant-nominal.yaml'} --scenario all\n"
-              "Contract 4 (pneutune.controller/1); docs/tuning.md.")
-    save_controller(tuned, controller_path, header=header)
-    nominal_path = out / "plant-nominal.yaml"
-    worst_path = out / "plant-worst.yaml"
-    write_yaml(nominal_path, objective.draws[0].plant.to_dict(),
-               header=f"The nominal plant of {model_path} (draw 0), sensor-noise seed "
-                      f"{objective.draws[0].noise_seed}. Contract 2.")
-    wd = objective.draws[comp.worst_draw]
-    write_yaml(worst_path, wd.plant.to_dict(),
-               header=f"Draw {wd.index} ({wd.label}) of {model_path}, seed {args.seed}: where "
-                      "the tuned controller does worst. Contract 2.")
-    report_info = {
-        "model": str(model_path), "model_sha256": model_sha, "storage": redact(storage),
-        "n_trials": args.trials, "counts": counts, "controller": str(controller_path),
-        "paper_path": os.path.relpath(paper_path) if paper_path.is_absolute() else str(
-            paper_path),
-        "plant_nominal": str(nominal_path), "plant_worst": str(worst_path),
-        "feasibility": feas.notes(),
-    }
-    report_path = write_report(out, objective, study, best, tuned, paper, comp, report_info)
-    # the file written loads back equal (contract 4 round trip)
-    if load_controller(controller_path) != tuned:  # pragma: no cover - a bug in save/load
-        raise RuntimeError(f"{controller_path} does not load back equal to the tuned config")
-
-    result = {
-        "controller": str(controller_path), "report": str(report_path),
-        "plant_nominal": str(nominal_path), "plant_worst": str(worst_path),
-        "model": str(model_path), "model_sha256": model_sha, "seed": args.seed,
-        "study": study_name, "storage": redact(storage), "workers": args.workers,
-        "jobs": jobs,
-        "trials": {"wanted": args.trials, "finished": finished(counts),
-                   "complete": counts["COMPLETE"], "pruned": counts["PRUNED"],
-                   "failed": counts["FAIL"], "running": counts["RUNNING"],
-                   "this_run": finished(counts) - finished(summary.counts_before),
-                   "leftovers_failed": summary.leftovers_failed},
-        "wall_s": summary.wall_s,
-        "best": {"trial": best.number, "objective": best.value, "params": best.params},
-        "narrowed": [list(b) for b in feas.box],
-        "feasibility": feas.notes(),
-        **comp.summary(),
-    }
+    summary = result.summary()
     if args.json:
-        print_json(result)
+        print_json(summary)
     else:
-        info(f"study {study_name}: {counts['COMPLETE']} complete, {counts['PRUNED']} pruned, "
-             f"{counts['FAIL']} failed ({result['trials']['this_run']} this run, "
-             f"{summary.wall_s:.1f} s)")
-        info(f"best trial #{best.number}: objective {best.value:.4f} (paper's gains: "
-             f"{comp.paper.value if comp.paper.value is None else round(comp.paper.value, 4)})")
-        info(f"wrote {controller_path}, {report_path}")
+        tr = summary["trials"]
+        paper = result.comparison.paper.value
+        info(f"study {summary['study']}: {tr['complete']} complete, {tr['pruned']} pruned, "
+             f"{tr['failed']} failed ({tr['this_run']} this run, {summary['wall_s']:.1f} s)")
+        info(f"best trial #{result.best.number}: objective {result.best.value:.4f} (paper's "
+             f"gains: {paper if paper is None else round(paper, 4)})")
+        info(f"wrote {summary['controller']}, {summary['report']}")
     return 0
 
 
@@ -304,4 +140,4 @@ if __name__ == "__main__":  # pragma: no cover
     entry()
 
 
-__all__ = ["entry", "main", "provenance"]
+__all__ = ["entry", "main"]

@@ -64,6 +64,8 @@ META_KEY = "pneutune"
 STUDY_SCHEMA = "pneutune.tune-study/1"
 #: Default journal file name in the output folder.
 DEFAULT_JOURNAL = "study.journal"
+#: A journal write lock unchanged for this long is a killed writer's and is taken over [s].
+JOURNAL_LOCK_GRACE_S = 3
 #: Heartbeat of RDB storages [s] and the silence after which a running trial is failed [s].
 HEARTBEAT_INTERVAL = 10
 GRACE_PERIOD = 30
@@ -144,7 +146,12 @@ def open_storage(storage: str) -> optuna.storages.BaseStorage:
         path = Path(storage)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            backend = optuna.storages.journal.JournalFileBackend(str(path))
+            # Optuna's own symlink lock, with a short grace period: a lock left by a writer
+            # killed inside an append (it holds the lock for milliseconds) is taken over after
+            # JOURNAL_LOCK_GRACE_S instead of Optuna's default 30 s
+            lock = optuna.storages.journal.JournalFileSymlinkLock(
+                str(path), grace_period=JOURNAL_LOCK_GRACE_S)
+            backend = optuna.storages.journal.JournalFileBackend(str(path), lock_obj=lock)
         except OSError as exc:
             raise StorageError(f"{storage}: cannot open the journal file ({exc})") from None
         return optuna.storages.JournalStorage(backend)
@@ -162,10 +169,10 @@ def open_storage(storage: str) -> optuna.storages.BaseStorage:
                                               grace_period=GRACE_PERIOD, **kwargs)
     except Exception as exc:  # SQLAlchemy/driver errors: connection refused, bad URL, ...
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise StorageError(f"--storage {_redact(storage)}: cannot open ({first})") from None
+        raise StorageError(f"--storage {redact_url(storage)}: cannot open ({first})") from None
 
 
-def _redact(url: str) -> str:
+def redact_url(url: str) -> str:
     """The URL without its password."""
     if "://" not in url or "@" not in url:
         return url
@@ -239,29 +246,6 @@ def repair_journal(path: Path) -> bool:
     return True
 
 
-def clear_stale_journal_lock(path: Path, wait_s: float = 1.0) -> bool:
-    """Remove Optuna's journal write lock (``<journal>.lock``) left by a killed writer.
-
-    Call only when alone (:func:`local_lock`): no other ``tune`` writes the journal, and any
-    other writer holds the lock for milliseconds, so a lock still there after ``wait_s`` is
-    stale. Without this, Optuna would wait its 30 s grace period before taking it over.
-
-    Returns
-    -------
-    bool
-        True if a stale lock was removed.
-    """
-    lock = Path(str(path) + optuna.storages.journal._file.LOCK_FILE_SUFFIX)
-    t0 = time.monotonic()
-    while os.path.lexists(lock) and time.monotonic() - t0 < wait_s:
-        time.sleep(0.05)
-    if os.path.lexists(lock):
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(lock)
-        return True
-    return False
-
-
 def fail_leftover_trials(study: optuna.Study) -> int:
     """Mark every RUNNING trial FAIL (call only when no other worker can be running).
 
@@ -270,14 +254,10 @@ def fail_leftover_trials(study: optuna.Study) -> int:
     int
         How many.
     """
-    storage = study._storage
     n = 0
     for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-        with contextlib.suppress(optuna.exceptions.UpdateFinishedTrialError):
-            storage.set_trial_user_attr(t._trial_id, "failure",
-                                        "left running by a killed tune; failed on resume")
-            storage.set_trial_state_values(t._trial_id, state=TrialState.FAIL)
-            n += 1
+        study.tell(t.number, state=TrialState.FAIL, skip_if_finished=True)
+        n += 1
     return n
 
 
@@ -389,7 +369,7 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
         detail = "; ".join(f"{k}: study has {_short(have.get(k))}, this run {_short(want[k])}"
                            for k in diffs)
         raise StudyMismatchError(
-            f"study {spec.study_name!r} in {_redact(spec.storage)} was created for another "
+            f"study {spec.study_name!r} in {redact_url(spec.storage)} was created for another "
             f"{', '.join(diffs)} ({detail}); use another --study or --out")
     return study
 
@@ -537,7 +517,6 @@ def run_study(spec: StudySpec, model: ModelConfig,
         file = local_file(spec.storage)
         if alone and file is not None and not is_url(spec.storage):
             repaired = repair_journal(file)
-            clear_stale_journal_lock(file)
         study = prepare_study(spec, model)
         leftovers = fail_leftover_trials(study) if alone else 0
         before = trial_counts(study)
@@ -585,6 +564,7 @@ def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
 
 
 __all__ = ["DEFAULT_JOURNAL", "RunSummary", "StorageError", "StudyMismatchError", "StudySpec",
-           "WorkerError", "clear_stale_journal_lock", "default_study_name", "fail_leftover_trials",
+           "WorkerError", "default_study_name", "fail_leftover_trials",
            "finished", "local_file", "local_lock", "open_storage", "prepare_study",
-           "repair_journal", "run_study", "sampler_seed", "storage_scheme", "trial_counts", "work"]
+           "redact_url", "repair_journal", "run_study", "sampler_seed", "storage_scheme",
+           "trial_counts", "work"]

@@ -1,0 +1,49 @@
+"""``pneutune.tune.tune``: the command as a library call (issue 13, section 2).
+
+The model is ``model_from_plant(PlantConfig())`` (the default plant's truth, every range ±20 %),
+tuned in memory with quick settings (one 4 s scenario, two plants): a notebook's use.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pneutune.control.contracts.controller import ControllerConfig, load_controller
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
+from pneutune.tune import TuneSettings, tune
+from pneutune.tune.objective import ObjectiveSettings, TuneError
+
+QUICK = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=4.0)
+
+
+@pytest.mark.parametrize(("field", "value", "message"), [
+    ("trials", 0, "--trials must be >= 1, got 0"),
+    ("workers", 0, "--workers must be >= 1, got 0"),
+    ("seed", -1, "--seed must be >= 0, got -1"),
+    ("jobs", 0, "--jobs must be >= 1, got 0"),
+])
+def test_settings_are_validated_in_the_library(field: str, value: int, message: str) -> None:
+    """The library refuses what the command refuses, with the same message."""
+    kwargs = {"trials": 5, field: value}
+    with pytest.raises(TuneError, match=message):
+        TuneSettings(**kwargs)
+
+
+def test_a_model_in_memory_tunes_and_resumes(tmp_path: Path) -> None:
+    """3 trials: the controller written equals the one returned, the summary is the --json
+    object, and the same call again runs no trial (the study is resumed from its journal)."""
+    model = model_from_plant(PlantConfig())
+    settings = TuneSettings(trials=3, out=tmp_path, jobs=1, objective=QUICK)
+    result = tune(model, settings)
+    assert isinstance(result.controller, ControllerConfig)
+    assert load_controller(result.paths["controller"]) == result.controller
+    summary = result.summary()
+    assert summary["trials"]["finished"] == 3 and summary["trials"]["this_run"] == 3
+    assert summary["model"] == "<model>" and len(summary["model_sha256"]) == 64
+    assert Path(summary["report"]).is_file()
+    again = tune(model, settings)
+    assert again.summary()["trials"]["this_run"] == 0
+    assert again.best.number == result.best.number
