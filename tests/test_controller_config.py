@@ -12,12 +12,11 @@ import pytest
 import yaml
 
 from pneutune.control.contracts.controller import (
-    SCHEMA_PATH,
     ControllerConfig,
     load_controller,
     save_controller,
-    schema_text,
 )
+from pneutune.control.contracts.json_schemas import schema_path, schema_text
 from pneutune.control.errors import ConfigError
 from pneutune.control.law.kalman import motion_model
 from pneutune.control.law.layout import (
@@ -180,10 +179,10 @@ def test_duplicate_key_rejected(tmp_path: Path) -> None:
 
 
 def test_committed_schema_is_current() -> None:
-    """control/schemas/controller.schema.json == the models' schema. Regenerate with
-    `python -m pneutune.control.contracts.controller`."""
-    assert SCHEMA_PATH.read_text(encoding="utf-8") == schema_text()
-    schema = json.loads(schema_text())
+    """control/contracts/schemas/controller.schema.json == the models' schema. Regenerate with
+    `python -m pneutune.control.contracts.json_schemas`."""
+    assert schema_path("controller").read_text(encoding="utf-8") == schema_text("controller")
+    schema = json.loads(schema_text("controller"))
     assert schema["additionalProperties"] is False
     assert {"position_feedback", "pid", "provenance"} <= set(schema["properties"])
 

@@ -300,41 +300,6 @@ def save_controller(cfg: ControllerConfig, path: str | os.PathLike[str],
     write_yaml(path, cfg.to_dict(), header=header)
 
 
-# ---------------------------------------------------------------------------------------------
-# JSON Schema
-# ---------------------------------------------------------------------------------------------
-
 #: The paper's Sec. 5.1 controller as a contract-4 file, shipped with the package (a checkout's
 #: data/controller-paper.yaml links to it).
 PAPER_CONTROLLER: Path = Path(__file__).resolve().parent / "data" / "controller-paper.yaml"
-#: The committed JSON Schema of contract 4.
-SCHEMA_PATH: Path = Path(__file__).resolve().parent / "schemas" / "controller.schema.json"
-
-
-def controller_json_schema() -> dict[str, Any]:
-    """The JSON Schema of controller.yaml
-    (:func:`pneutune.control.contracts.json_schemas.json_schema`)."""
-    from pneutune.control.contracts.json_schemas import json_schema
-
-    return json_schema("controller")
-
-
-def schema_text() -> str:
-    """The schema as the committed file's text."""
-    from pneutune.control.contracts.json_schemas import schema_text as text
-
-    return text("controller")
-
-
-def write_schema(path: str | os.PathLike[str] | None = None) -> Path:
-    """Regenerate the committed schema file (``python -m
-    pneutune.control.contracts.json_schemas``)."""
-    from pneutune.control.contracts.atomic import atomic_write_text
-
-    target = Path(path) if path is not None else SCHEMA_PATH
-    atomic_write_text(target, schema_text())
-    return target
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(write_schema())
