@@ -202,10 +202,6 @@ class PidConfig(_Strict):
     i_max: float = Field(1.0e-3, ge=0.0, le=1.0, description="Clamp of the integral of e1 [m s]")
 
 
-def _list_to_tuple(value: Any) -> Any:
-    return tuple(value) if isinstance(value, list) else value
-
-
 class ProvenanceConfig(_Strict):
     """Where a tuned config came from (all optional)."""
 
