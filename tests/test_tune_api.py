@@ -47,3 +47,19 @@ def test_a_model_in_memory_tunes_and_resumes(tmp_path: Path) -> None:
     again = tune(model, settings)
     assert again.summary()["trials"]["this_run"] == 0
     assert again.best.number == result.best.number
+
+
+def test_the_pid_baseline_is_tuned_with_the_same_objective(tmp_path: Path) -> None:
+    """--variant pid: the study searches the pid block and the motion filter's Q, the first
+    trial is contract 4's default PID (ki at its range's low end, 1e5), the controller written
+    is a pid controller, and its study is not the DARC's (name ends in -pid)."""
+    model = model_from_plant(PlantConfig())
+    objective = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=4.0,
+                                  variant="pid")
+    result = tune(model, TuneSettings(trials=3, out=tmp_path, jobs=1, objective=objective))
+    assert result.controller.variant == "pid"
+    assert set(result.best.params) == {"pid.kp", "pid.ki", "pid.kd", "pid.i_max",
+                                       "kalman.motion.Q"}
+    first = result.study.trials[0].params
+    assert first["pid.kp"] == 3.0e6 and first["pid.ki"] == 1.0e5
+    assert result.summary()["study"].endswith("-pid")

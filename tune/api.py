@@ -262,7 +262,8 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     """
     model_cfg, model_sha, name = _load(model)
     try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
-        controller_from_params(model_cfg, search_space(model_cfg).paper_params())
+        controller_from_params(model_cfg, search_space(
+            model_cfg, settings.objective.variant).paper_params())
     except ConfigError as exc:
         raise ConfigError(name, exc.key, "cannot make a controller.yaml from this model: "
                           f"{exc.message}") from None
@@ -275,7 +276,8 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     except InfeasibleModelError as exc:
         raise ConfigError(name, "", str(exc)) from None
     objective_settings = dataclasses.replace(settings.objective, box=feas.box)
-    study_name = settings.study or default_study_name(model_sha, settings.seed)
+    study_name = settings.study or default_study_name(model_sha, settings.seed,
+                                                      settings.objective.variant)
     jobs = settings.jobs if settings.jobs is not None else (
         min(available_cpus(), objective_settings.n_draws) if settings.workers == 1 else 1)
     spec = StudySpec(storage, study_name, settings.seed, settings.trials, settings.workers,

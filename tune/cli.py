@@ -16,6 +16,7 @@ from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
 from .api import DEFAULT_OUT, TuneSettings, tune
 from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError
+from .space import VARIANTS
 from .study import DEFAULT_JOURNAL
 
 DEFAULT_MODEL = "reports/identify/model.yaml"
@@ -41,6 +42,7 @@ EPILOG = """\
 examples:
   tune --trials 200
   tune --model reports/identify/model.yaml --trials 400 --workers 2 --seed 3
+  tune --trials 200 --variant pid          (the PID baseline, same objective: a fair comparison)
   tune --trials 1000 --storage postgresql://tune@db.lan:5432/pneutune --study axis1 --workers 2
       (run the same command on several hosts: they share the study; docs/tuning.md)
 
@@ -96,6 +98,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, metavar="SECONDS",
                         help="override every scenario's duration (quick experiments only; the "
                              "figures then differ from Table 1's protocol)")
+    parser.add_argument("--variant", choices=VARIANTS, default="modified_darc",
+                        help="what to tune: the paper's modified DARC (default) or the pid "
+                             "baseline on the same valve logic, with the same objective, so that "
+                             "the comparison is fair")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (progress and prose on stderr)")
     args = parser.parse_args(argv)
@@ -103,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         trials=args.trials, out=args.out, storage=args.storage, study=args.study,
         workers=args.workers, jobs=args.jobs, seed=args.seed,
         objective=ObjectiveSettings(scenarios=_scenarios(args.scenarios), n_draws=args.draws,
-                                    duration=args.duration))
+                                    duration=args.duration, variant=args.variant))
     bar = tqdm(total=args.trials, desc="tune", unit="trial", file=sys.stderr, disable=None,
                leave=False)
 

@@ -196,7 +196,7 @@ def _reference(model: ModelConfig, objective: TuneObjective, seed: int
                ) -> tuple[str, dict[str, float], str | None]:
     """The reference controller: the paper's gains, or the first sampled controller that
     tracks the nominal plant in every scenario."""
-    space = search_space(model)
+    space = search_space(model, objective.settings.variant)
     nominal = objective.draws[0]
 
     def tracks(params: dict[str, float]) -> str | None:
@@ -212,7 +212,9 @@ def _reference(model: ModelConfig, objective: TuneObjective, seed: int
     paper = space.paper_params()
     why = tracks(paper)
     if why is None:
-        return "the paper's gains", paper, None
+        name = "the paper's gains" if objective.settings.variant == "modified_darc" else \
+            "the default PID gains"
+        return name, paper, None
     rng = np.random.default_rng([int(seed), 11])
     for k in range(1, N_ALTERNATIVES + 1):
         params = {p.name: float(np.exp(rng.uniform(np.log(p.low), np.log(p.high)))) if p.log

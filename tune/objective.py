@@ -59,7 +59,7 @@ from pneutune.control.sim.closed_loop import (
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, Scenario, resolve_scenarios
 
 from .plants import PlantDraw, draw_plants
-from .space import SearchSpace, controller_from_params, search_space
+from .space import VARIANTS, SearchSpace, controller_from_params, search_space
 
 #: Default scenarios: Table 1, then the disturbance run (DESIGN.md).
 DEFAULT_SCENARIOS: tuple[str, ...] = (*GROUPS["table1"], "disturbance-0.5hz")
@@ -99,6 +99,9 @@ class ObjectiveSettings:
     end_stop_weight : float
         Penalty per second within 0.2 mm of a stroke end, plus the same once for any contact
         [1/s].
+    variant : str
+        What is tuned: ``modified_darc`` (default) or ``pid`` (:func:`pneutune.tune.space.
+        search_space`).
     box : tuple of (str, float, float)
         Narrower ranges of plant coordinates, ``(key, lo, hi)``
         (:func:`pneutune.tune.plants.uncertainty_box`); set by the feasibility check
@@ -115,6 +118,7 @@ class ObjectiveSettings:
     p_low_fraction: float = 0.5
     pressure_weight: float = 1.0
     end_stop_weight: float = 2.0
+    variant: str = "modified_darc"
     box: tuple[tuple[str, float, float], ...] = ()
 
     def __post_init__(self) -> None:
@@ -131,6 +135,9 @@ class ObjectiveSettings:
             raise TuneError(f"abort_error > 0 must hold, got {self.abort_error}")
         if self.duration is not None and not self.duration > 0.0:
             raise TuneError(f"duration > 0 must hold, got {self.duration}")
+        if self.variant not in VARIANTS:
+            raise TuneError(f"--variant must be one of {', '.join(VARIANTS)}, got "
+                            f"{self.variant!r}")
         for key, lo, hi in self.box:
             if not lo <= hi:
                 raise TuneError(f"box {key}: lo <= hi must hold, got lo={lo}, hi={hi}")
@@ -140,10 +147,12 @@ class ObjectiveSettings:
         return {key: (lo, hi) for key, lo, hi in self.box}
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain data (JSON-able); ``box`` only when set (studies made before it compare
-        equal)."""
+        """Plain data (JSON-able); ``box`` only when set and ``variant`` only when not the
+        default (studies made before either existed compare equal)."""
         out = dataclasses.asdict(self)
         out["scenarios"] = list(self.scenarios)
+        if self.variant == "modified_darc":
+            del out["variant"]
         if self.box:
             out["box"] = [list(b) for b in self.box]
         else:
@@ -313,7 +322,7 @@ class TuneObjective:
         self.model = model
         self.seed = int(seed)
         self.settings = settings if settings is not None else ObjectiveSettings()
-        self.space: SearchSpace = search_space(model)
+        self.space: SearchSpace = search_space(model, self.settings.variant)
         self.draws: tuple[PlantDraw, ...] = draw_plants(model, self.settings.n_draws, self.seed,
                                                         self.settings.box_dict())
         scen = [SCENARIOS[n] for n in self.settings.scenarios]

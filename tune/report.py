@@ -243,7 +243,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
     for p in objective.space.params:
         imp_s = f"{imp[p.name]:.3f}" if imp and p.name in imp else "-"
         out.append(f"| {p.name} | {p.unit} | [{p.low:.3g}, {p.high:.3g}]{' log' if p.log else ''}"
-                   f" | {pp[p.name]:.4g} | {tp[p.name]:.4g} | {imp_s} |")
+                   f" | {pp.get(p.name, p.paper):.4g} | {tp[p.name]:.4g} | {imp_s} |")
     out += ["",
             f"Fixed: eps2 = {tuned.gains.eps2:g}, eps3 = {tuned.gains.eps3:g}, "
             f"r2 = {tuned.gains.r2:g}, motion R = {tuned.kalman.motion.R:.3g} m², "

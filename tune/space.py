@@ -35,7 +35,7 @@ from typing import Any
 import optuna
 
 from pneutune.control.constants import CONTROLLER_SCHEMA, THETA_NAMES
-from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.controller import ControllerConfig, PidConfig
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.yamlio import validate_model
 
@@ -146,20 +146,44 @@ class SearchSpace:
         return [[p.name, p.low, p.high, p.log] for p in self.params]
 
 
-def search_space(model: ModelConfig) -> SearchSpace:
+#: Variants ``tune`` can search: the paper's modified DARC, and the PID baseline (on the same
+#: valve logic and PWM inverse) so that the comparison with DARC is made on equal terms.
+VARIANTS: tuple[str, ...] = ("modified_darc", "pid")
+
+
+def search_space(model: ModelConfig, variant: str = "modified_darc") -> SearchSpace:
     """The search space for ``model``.
 
     Parameters
     ----------
     model : ModelConfig
         The identified model (its sensor noise sets the motion filter's R and Q range).
+    variant : {"modified_darc", "pid"}
+        What is tuned. ``pid``: the gains of the ``pid`` block (Q_Ld = -(kp e1 + ki ∫e1 +
+        kd (v̂ - v_r))) and the motion filter's Q, which gives v̂; the first trial is
+        contract 4's default PID (ki at its range's low end).
 
     Returns
     -------
     SearchSpace
     """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     r_m = motion_R(model)
     r_f = PAPER_FORCE_R
+    # Q/R of the motion filter over 1e5..1e11 1/s^4: bandwidth ~ (Q/R)^(1/6), a factor 10.
+    motion_q = ParamSpec("kalman.motion.Q", 1.0e5 * r_m, 1.0e11 * r_m, True, "m^2/s^4",
+                         PAPER_Q_OVER_R * r_m)
+    if variant == "pid":
+        pid = PidConfig()
+        params = [
+            ParamSpec("pid.kp", 1.0e5, 1.0e9, True, "N/(s m)", pid.kp),
+            ParamSpec("pid.ki", 1.0e5, 1.0e11, True, "N/(s^2 m)", pid.ki),
+            ParamSpec("pid.kd", 1.0e3, 1.0e7, True, "N/m", pid.kd),
+            ParamSpec("pid.i_max", 1.0e-5, 1.0e-2, True, "m s", pid.i_max),
+            motion_q,
+        ]
+        return SearchSpace(tuple(params), r_m, r_f)
     gamma_paper = (0.2, 300.0, 2000.0, 500.0, 100.0, 100.0)
     gamma_range = ((0.005, 20.0), (3.0, 3.0e4), (20.0, 2.0e5), (5.0, 5.0e4), (1.0, 1.0e4),
                    (1.0, 1.0e4))
@@ -174,13 +198,16 @@ def search_space(model: ModelConfig) -> SearchSpace:
     for name, (lo, hi), paper, unit in zip(THETA_NAMES, gamma_range, gamma_paper, _GAMMA_UNITS,
                                            strict=True):
         params.append(ParamSpec(f"adaptation.gamma.{name}", lo, hi, True, unit, paper))
-    # Q/R of the motion filter over 1e5..1e11 1/s^4: bandwidth ~ (Q/R)^(1/6), a factor 10.
-    params.append(ParamSpec("kalman.motion.Q", 1.0e5 * r_m, 1.0e11 * r_m, True, "m^2/s^4",
-                            PAPER_Q_OVER_R * r_m))
+    params.append(motion_q)
     # Q/R of the force filter over 1e4..1e10 1/s^4: bandwidth ~ (Q/R)^(1/4), 10..316 rad/s.
     params.append(ParamSpec("kalman.force.Q", 1.0e4 * r_f, 1.0e10 * r_f, True, "N^2/s^4",
                             PAPER_Q_OVER_R * r_f))
     return SearchSpace(tuple(params), r_m, r_f)
+
+
+def variant_of(params: Mapping[str, float]) -> str:
+    """The variant a parameter set belongs to (``pid`` if it has ``pid.*`` keys)."""
+    return "pid" if any(k.startswith("pid.") for k in params) else "modified_darc"
 
 
 def _inside(lo: float, value: float, hi: float) -> float:
@@ -195,7 +222,8 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
 
     The rig, the valves' C and b (for the fully-open flows of Eq. 32), the PWM curve and the θ box
     come from the model; θ_0 is the model's nominal θ (moved inside the box by 1e-6 of its span if
-    it sits on a bound); limits are the stroke and the supply + 0.5 bar.
+    it sits on a bound); limits are the stroke and the supply + 0.5 bar. A ``pid`` parameter set
+    (:func:`variant_of`) keeps the paper's DARC gains, unused, and the paper's force filter.
 
     Parameters
     ----------
@@ -210,16 +238,20 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
     -------
     dict
     """
-    space = search_space(model)
+    variant = variant_of(params)
+    space = search_space(model, variant)
     missing = [n for n in space.names if n not in params]
     if missing:
         raise KeyError(f"parameters missing: {missing}")
     th = model.theta
     theta_0 = [_inside(lo, v, hi) for lo, v, hi in zip(th.min, th.nominal, th.max, strict=True)]
     rig = model.rig
+    if variant == "pid":  # the DARC blocks are required by contract 4 but unused: the paper's
+        darc = search_space(model).paper_params()
+        params = {**darc, **params, "kalman.force.Q": darc["kalman.force.Q"]}
     data: dict[str, Any] = {
         "schema": CONTROLLER_SCHEMA,
-        "variant": "modified_darc",
+        "variant": variant,
         "position_feedback": "measured",
         "rig": rig.model_dump(),
         "valves": {name: {"C": v.C, "b": v.b}
@@ -240,6 +272,8 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
         "limits": {"x_min": rig.x_min, "x_max": rig.x_max, "p_max": rig.p_s + P_MAX_MARGIN,
                    "sensor_timeout_s": SENSOR_TIMEOUT_S},
     }
+    if variant == "pid":
+        data["pid"] = {k: params[f"pid.{k}"] for k in ("kp", "ki", "kd", "i_max")}
     if provenance is not None:
         data["provenance"] = dict(provenance)
     return data
@@ -264,6 +298,10 @@ def controller_from_params(model: ModelConfig, params: Mapping[str, float],
 
 def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
     """The searched parameters of a controller (inverse of :func:`controller_from_params`)."""
+    if cfg.variant == "pid":
+        p = cfg.pid
+        return {"pid.kp": p.kp, "pid.ki": p.ki, "pid.kd": p.kd, "pid.i_max": p.i_max,
+                "kalman.motion.Q": cfg.kalman.motion.Q}
     g = cfg.gains
     out = {"gains.k1": g.k1, "gains.k2": g.k2, "gains.k3": g.k3, "gains.h2": g.h2,
            "gains.h3": g.h3, "gains.r3": g.r3}
@@ -274,5 +312,5 @@ def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
     return out
 
 
-__all__ = ["ParamSpec", "SearchSpace", "controller_dict", "controller_from_params", "motion_R",
-           "params_from_controller", "search_space"]
+__all__ = ["VARIANTS", "ParamSpec", "SearchSpace", "controller_dict", "controller_from_params",
+           "motion_R", "params_from_controller", "search_space", "variant_of"]

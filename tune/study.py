@@ -88,9 +88,11 @@ class WorkerError(RuntimeError):
     """A worker process failed (its traceback is on stderr): an internal failure, exit 1."""
 
 
-def default_study_name(model_sha256: str, seed: int) -> str:
-    """``tune-<sha256[:12]>-seed<S>``: the same command resumes the same study."""
-    return f"tune-{model_sha256[:12]}-seed{seed}"
+def default_study_name(model_sha256: str, seed: int, variant: str = "modified_darc") -> str:
+    """``tune-<sha256[:12]>-seed<S>`` (``-pid`` appended for the pid variant): the same command
+    resumes the same study."""
+    suffix = "" if variant == "modified_darc" else f"-{variant}"
+    return f"tune-{model_sha256[:12]}-seed{seed}{suffix}"
 
 
 def is_url(storage: str) -> bool:
@@ -312,7 +314,7 @@ class StudySpec:
         """What the study is created with (stored, then checked on resume)."""
         return {"schema": STUDY_SCHEMA, "model_sha256": self.model_sha256, "seed": self.seed,
                 "objective": self.settings.to_dict(),
-                "space": search_space(model).signature()}
+                "space": search_space(model, self.settings.variant).signature()}
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data."""
@@ -359,7 +361,8 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
     if have is None:
         study.set_user_attr(META_KEY, want)
         if not study.get_trials(deepcopy=False):
-            study.enqueue_trial(search_space(model).paper_params(), skip_if_exists=True)
+            study.enqueue_trial(search_space(model, spec.settings.variant).paper_params(),
+                                skip_if_exists=True)
             if spec.extra_first is not None:
                 study.enqueue_trial(dict(spec.extra_first), skip_if_exists=True)
         return study
