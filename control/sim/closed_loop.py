@@ -39,6 +39,9 @@ LOG_INDEX = np.array([*CONTROL_STATE_FIELDS.values(), *range(S_THETA, S_THETA + 
                      dtype=np.int64)
 
 STATUS_OK, STATUS_UNSTABLE, STATUS_ABORTED = "ok", "unstable", "aborted"
+#: θ̂ has settled when no estimate moves by more than this fraction of its box over the metric
+#: window (Metrics.theta_drift).
+THETA_SETTLED = 0.02
 
 
 @njit(cache=True)
@@ -129,6 +132,12 @@ class Metrics:
         Time the measured position spent within 0.2 mm of a stroke end [s].
     status : str
         ok | unstable | aborted.
+    theta_drift : float
+        How far θ̂ still moved over the metric window: the largest |Δθ̂_i| over the last three
+        periods, as a fraction of its box θ_max,i - θ_min,i [-].
+    theta_settled : bool
+        ``theta_drift`` below :data:`THETA_SETTLED` (θ̂ has settled by the metric window, so
+        the indices would not change much with a longer run).
     """
 
     E_p_mm: float
@@ -141,6 +150,8 @@ class Metrics:
     theta_in_bounds: bool
     end_stop_s: float
     status: str
+    theta_drift: float = float("nan")
+    theta_settled: bool = False
 
     def as_dict(self) -> dict[str, float | bool | str]:
         """Plain dict (the metrics object of DESIGN.md plus the extra fields)."""
@@ -212,6 +223,8 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
     in_bounds = bool(np.all((theta >= theta_min - tol) & (theta <= theta_max + tol)))
     x = sensors[:, 0]
     near = (x <= x_min + 2e-4) | (x >= x_max - 2e-4)
+    span = np.maximum(np.asarray(theta_max) - np.asarray(theta_min), 1e-300)
+    drift = float(np.max(np.abs(theta[-1] - theta[n - window]) / span))
     return Metrics(
         E_p_mm=float(np.max(np.abs(e1)) * 1e3),
         E_rms_mm=float(np.sqrt(np.mean(e1**2)) * 1e3),
@@ -219,7 +232,7 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
         p_a_max_Pa=float(np.max(sensors[:, 1])), p_b_max_Pa=float(np.max(sensors[:, 2])),
         p_a_min_Pa=float(np.min(sensors[:, 1])), p_b_min_Pa=float(np.min(sensors[:, 2])),
         theta_in_bounds=in_bounds, end_stop_s=float(np.count_nonzero(near) * Ts),
-        status=status,
+        status=status, theta_drift=drift, theta_settled=drift < THETA_SETTLED,
     )
 
 
