@@ -19,7 +19,7 @@ from scipy.signal import savgol_filter
 from pneutune.control.constants import VALVES
 from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.errors import LogError
-from pneutune.control.logs.runlog import RunLog, read_run_log
+from pneutune.control.logs.reader import RunLog, read_run_log
 
 #: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (issue 4's unit check).
 P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5

@@ -129,7 +129,7 @@ def test_cli_json_is_one_object_and_reproducible(tmp_path):
 
 def test_cli_writes_log_and_plots(tmp_path):
     """`--out` writes an MCAP log with the closed-loop topics; `--plots` writes the figures."""
-    from pneutune.control.logs.runlog import read_run_log
+    from pneutune.control.logs.reader import read_run_log
 
     out = tmp_path / "cl.mcap"
     res = subprocess.run([sys.executable, "-m", "pneutune.control.cli.simulate", "--controller",

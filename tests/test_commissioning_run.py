@@ -18,7 +18,7 @@ import pytest
 from pneutune.control.cli.simulate import main as simulate_main
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError
-from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.commissioning_run import (
     END_MARGIN,
     commissioning_protocol,

@@ -17,7 +17,7 @@ import pytest
 from pneutune.control.constants import VALVES
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig, RigConfig
-from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.logs.reader import read_run_log
 from pneutune.control.physics.pwm import effective_open_fraction
 from pneutune.control.rig.commissioning_run import simulate_commissioning
 from pneutune.control.sim.closed_loop import simulate_scenario

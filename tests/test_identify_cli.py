@@ -12,7 +12,8 @@ import pytest
 
 from pneutune.control.contracts.model import load_model
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.logs.runlog import RunLogWriter, read_run_log
+from pneutune.control.logs.reader import read_run_log
+from pneutune.control.logs.writer import RunLogWriter
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "data" / "run.mcap"
@@ -93,7 +94,7 @@ def test_time_backwards(tmp_path, source):
     writer here (another tool's log)."""
     from mcap.writer import Writer
 
-    from pneutune.control.logs.runlog import TOPIC_SCHEMAS
+    from pneutune.control.logs.topics import TOPIC_SCHEMAS
 
     bad = tmp_path / "back.mcap"
     with open(bad, "wb") as fh:

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pneutune.control.logs.runlog import TOPIC_SCHEMAS, RunLogWriter
+from pneutune.control.logs.topics import TOPIC_SCHEMAS
+from pneutune.control.logs.writer import RunLogWriter
 
 REPO = Path(__file__).resolve().parents[1]
 NODE_DIR = REPO / ".cache" / "node"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.logs.reader import read_run_log
 
 SIMULATE = Path(sys.executable).with_name("simulate")
 

@@ -27,6 +27,7 @@ from pneutune.control.constants import LOG_SCHEMA, RIG_KEYS
 from pneutune.control.errors import (
     EmptyLogError,
     LogError,
+    LogSchemaError,
     MissingMetadataError,
     MissingTopicError,
     NonFiniteValueError,
@@ -35,17 +36,9 @@ from pneutune.control.errors import (
     TruncatedLogError,
 )
 from pneutune.control.logs.mcap_json import JsonDecoderFactory, decode_json, encode_json
-from pneutune.control.logs.runlog import (
-    _SPEC,
-    MCAP_MAGIC,
-    TOPIC_SCHEMAS,
-    TOPICS,
-    LogSchemaError,
-    RunLog,
-    RunLogWriter,
-    _bulk_numeric,
-    read_run_log,
-)
+from pneutune.control.logs.reader import MCAP_MAGIC, RunLog, _bulk_numeric, read_run_log
+from pneutune.control.logs.topics import TOPIC_SCHEMAS, TOPIC_SPECS, TOPICS
+from pneutune.control.logs.writer import RunLogWriter
 
 # The paper's rig (Sec. 5.1; DESIGN.md contract 2 defaults).
 RIG: dict[str, float | str] = {
@@ -784,13 +777,13 @@ def test_writer_output_takes_the_bulk_path(tmp_path: Path, topic: str) -> None:
         log.write_many(topic, np.arange(n) * 0.004, cols)
     with open(path, "rb") as fh:
         payloads = [m.data for _, _, m in make_reader(fh).iter_messages()]
-    values = _bulk_numeric(_SPEC[topic], payloads)
+    values = _bulk_numeric(TOPIC_SPECS[topic], payloads)
     assert values is not None
     expected = np.column_stack([cols[name] for name in FIELDS[topic]])
     np.testing.assert_array_equal(values, expected)
     # ... and anything else falls back (here: one message with a space).
     payloads[3] = payloads[3].replace(b":", b": ", 1)
-    assert _bulk_numeric(_SPEC[topic], payloads) is None
+    assert _bulk_numeric(TOPIC_SPECS[topic], payloads) is None
 
 
 def test_path_and_sha256(tmp_path: Path) -> None:

@@ -109,7 +109,7 @@ from pneutune.control.law.layout import (
     pack,
 )
 from pneutune.control.law.projection import adapt_step_into
-from pneutune.control.logs.runlog import topic_fields
+from pneutune.control.logs.topics import topic_fields
 from pneutune.control.physics.friction import smooth_sign, smooth_sign_derivative
 
 # --- measurement vector ------------------------------------------------------------------------

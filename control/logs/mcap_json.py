@@ -4,9 +4,8 @@ MCAP's registry names the message encoding ``json`` (UTF-8 JSON text, one value 
 the schema encoding ``jsonschema`` (a JSON Schema document). :class:`JsonDecoderFactory` plugs into
 :func:`mcap.reader.make_reader` (``decoder_factories=[JsonDecoderFactory()]``) so that
 ``iter_decoded_messages`` yields Python objects; the run-log reader
-(:mod:`pneutune.control.logs.runlog`) uses the same factory to decide whether it can decode a
-channel
-and :func:`decode_json` to decode each message.
+(:mod:`pneutune.control.logs.reader`) uses the same factory to decide whether it can decode a
+channel and :func:`decode_json` to decode each message.
 
 Decoding is Python's :func:`json.loads`, which also accepts the non-standard tokens ``NaN``,
 ``Infinity`` and ``-Infinity`` that some writers emit. They decode to non-finite floats, so a

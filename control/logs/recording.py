@@ -11,7 +11,8 @@ import numpy as np
 
 from pneutune.control import __version__
 from pneutune.control.constants import LOG_SCHEMA, VALVES
-from pneutune.control.logs.runlog import topic_fields
+from pneutune.control.logs.topics import topic_fields
+from pneutune.control.logs.writer import RunLogWriter
 
 SENSOR_FIELDS = topic_fields("/rig/sensors")
 TRUTH_FIELDS = topic_fields("/sim/truth")
@@ -92,8 +93,6 @@ class Recording:
         run : mapping
             Extra ``run`` metadata (``seed``, ...); schema, created_by and version are added.
         """
-        from pneutune.control.logs.runlog import RunLogWriter
-
         # sample_period: the logging period, which an identification run makes shorter than
         # the control period rig.Ts (identification_run.IDENT_SAMPLE_PERIOD)
         meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__,

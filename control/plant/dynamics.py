@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
-from pneutune.control.logs.runlog import topic_fields
+from pneutune.control.logs.topics import topic_fields
 from pneutune.control.physics.flow import iso6358_flow, signed_flow
 from pneutune.control.physics.friction import stribeck_force
 from pneutune.control.plant.params import (
