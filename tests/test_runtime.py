@@ -19,7 +19,7 @@ from pneutune.control.cli.summary import summary_markdown, write_summary
 from pneutune.control.constants import RIG_KEYS
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.pipe import PROTOCOL, DeploySimRig, PipeRig, RigIOError, serve
 from pneutune.control.rig.runtime import run_scenario, sim_rig_for
 from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES
@@ -154,7 +154,8 @@ def test_pipe_rig_reports_a_dead_server():
     with pytest.raises(RigIOError, match=r"closed its output|gone"):
         PipeRig(command=[sys.executable, "-c", "import sys; sys.exit(0)"], timeout=5.0)
     with pytest.raises(RigIOError, match="no reply"):
-        PipeRig(command=[sys.executable, "-c", "import time; time.sleep(5)"], timeout=0.3)
+        PipeRig(command=[sys.executable, "-c", "import time; time.sleep(5)"], timeout=0.3,
+                startup_timeout=0.3)
 
 
 def test_realtime_pacing(paper):

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
-from pneutune.control.logs.runlog import read_run_log
+from pneutune.control.logs.reader import read_run_log
 from pneutune.control.plant.params import S_X
 from pneutune.control.rig.faults import Fault, FaultySimRig
 from pneutune.control.rig.runtime import run_scenario, sim_rig_for

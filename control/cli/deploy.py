@@ -20,9 +20,10 @@ from pneutune.control.cli.common import (
 )
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
-from pneutune.control.contracts.plant import load_plant
+from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ConfigError, ExperimentError
 from pneutune.control.law.layout import pack
+from pneutune.control.rig.protocol import Rig
 from pneutune.control.rig.supervisor import FAIL_SAFE_MODES
 
 #: Exit status of a run stopped by a supervisor fault.
@@ -30,7 +31,7 @@ EXIT_FAULT = 3
 #: Where logs go by default: ``<DEFAULT_LOG_DIR>/<scenario>.mcap``.
 DEFAULT_LOG_DIR = Path("reports") / "deploy"
 #: Rig kinds of ``--rig``.
-RIG_KINDS: tuple[str, ...] = ("sim", "pipe-sim")
+RIG_KINDS: tuple[str, ...] = ("sim", "pipe-sim", "exec")
 #: Relative tolerance of the Ts and pwm_hz comparison between controller and rig.
 RIG_MATCH_RTOL = 1.0e-9
 
@@ -51,6 +52,17 @@ Rigs (--rig):
   sim[:P.yaml]        the simulated rig in this process (plant.yaml merged over the paper's rig)
   pipe-sim[:P.yaml]   the same rig in a child process, over the example driver's pipe protocol
                       (pneutune/control/rig/pipe.py; the interface a hardware driver implements)
+  exec:"CMD ARGS"     any driver program speaking the pipe protocol pneutune.rig/1 on its
+                      stdin/stdout (a C program on a DAQ card, a Python script on a serial
+                      port; docs/deploy.md). Each scenario starts a fresh driver process; in
+                      CMD, {scenario} and {seed} are replaced by the scenario's name and the
+                      seed first (a simulated rig needs them, a hardware driver ignores them),
+                      then CMD is split like a shell would (no shell runs). Its hello gives the
+                      rig block (Ts and pwm_hz must equal the controller's); a driver that is
+                      not there, dies at once or sends a bad hello is bad input (exit 2, with
+                      the driver's last stderr lines). A reply later than 2 s (10 s for the
+                      hello) or an E reply during the run is a rig_io fault (exit 3).
+                      `python -m pneutune.control.driver check "CMD ARGS"` checks a driver.
 
 Safety supervisor (docs/deploy.md): a sensor reading NaN, stale or out of range, the supply
 lost, the position outside limits.x_min/x_max, or a chamber above limits.p_max: in that very
@@ -70,6 +82,9 @@ examples:
   deploy data/controller-paper.yaml --scenario table1 --rig sim:my-plant.yaml --seed 3
   deploy data/controller-paper.yaml --scenario sine-0.75hz --realtime --log /tmp/run.mcap
   deploy data/controller-paper.yaml --rig pipe-sim --duration 2
+  deploy data/controller-paper.yaml --scenario table1 --rig exec:"python -m
+         pneutune.control.driver serve --scenario {scenario} --seed {seed}"
+  deploy data/controller-paper.yaml --rig exec:"./rig_driver" --duration 2
   identify reports/deploy/sine-0.5hz.mcap         # close the loop: log -> identify -> tune
 
 scenarios: sine-0.5hz (default), sine-0.75hz, sine-0.5hz-heavy, square-0.5hz,
@@ -80,20 +95,32 @@ stops the remaining scenarios.
 
 
 def parse_rig(spec: str) -> tuple[str, str | None]:
-    """Split a ``--rig`` value into (kind, plant path or None).
+    """Split a ``--rig`` value into (kind, argument).
+
+    Returns
+    -------
+    (kind, argument)
+        ``kind`` one of :data:`RIG_KINDS`; ``argument`` the plant path or None for ``sim`` and
+        ``pipe-sim``, the driver command (with its placeholders) for ``exec``.
 
     Raises
     ------
     ExperimentError
-        An unknown kind or an empty path.
+        An unknown kind, an empty path, or a bad driver command
+        (:func:`~pneutune.control.rig.pipe.exec_command`).
     """
-    kind, sep, path = spec.partition(":")
+    from pneutune.control.rig.pipe import exec_command
+
+    kind, sep, arg = spec.partition(":")
     if kind not in RIG_KINDS:
-        raise ExperimentError(f"--rig: unknown rig {kind!r}; expected sim[:P.yaml] or "
-                              f"pipe-sim[:P.yaml]")
-    if sep and not path:
+        raise ExperimentError(f"--rig: unknown rig {kind!r}; expected sim[:P.yaml], "
+                              f"pipe-sim[:P.yaml] or exec:\"CMD ARGS\"")
+    if kind == "exec":
+        exec_command(arg, "sine-0.5hz", 0)  # the checks, before anything runs
+        return kind, arg
+    if sep and not arg:
         raise ExperimentError(f"--rig {spec!r}: the plant path after ':' is empty")
-    return kind, (path or None)
+    return kind, (arg or None)
 
 
 def check_rig_compatible(controller: ControllerConfig, rig_meta: dict[str, Any],
@@ -137,15 +164,17 @@ def _timing_line(name: str, timing: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``deploy``; returns the exit status (0, 3; 2 via PneutuneError)."""
-    from pneutune.control.rig.pipe import PipeRig
+    from pneutune.control.rig.pipe import ExecRig, PipeRig, exec_command
     from pneutune.control.rig.runtime import run_scenario, sim_rig_for
     from pneutune.control.rig.supervisor import Supervisor, SupervisorSettings
+    from pneutune.control.sim.closed_loop import scenario_plant
     from pneutune.control.sim.scenarios import resolve_scenarios
 
     parser = make_parser("deploy", DESCRIPTION, EPILOG)
     parser.add_argument("controller", metavar="C.yaml", help="controller.yaml (contract 4)")
     parser.add_argument("--rig", default="sim", metavar="RIG",
-                        help="sim[:P.yaml] (default sim) or pipe-sim[:P.yaml]")
+                        help="sim[:P.yaml] (default sim), pipe-sim[:P.yaml] or "
+                             "exec:\"CMD ARGS\" (below)")
     parser.add_argument("--scenario", default="sine-0.5hz", metavar="S",
                         help="scenario name, table1 or all (default sine-0.5hz)")
     parser.add_argument("--realtime", action="store_true",
@@ -155,7 +184,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (prose goes to stderr)")
     parser.add_argument("--seed", type=int, metavar="N",
-                        help="sensor-noise seed of the simulated rig (default: sim.seed, 1)")
+                        help="sensor-noise seed of the simulated rig (default: sim.seed, 1); "
+                             "{seed} of an exec: command")
     parser.add_argument("--duration", type=float, metavar="S",
                         help="run only the first S seconds of each scenario")
     parser.add_argument("--fail-safe", choices=sorted(FAIL_SAFE_MODES), default="hold",
@@ -165,10 +195,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     # --- everything is checked before anything runs ----------------------------------------
     controller = load_controller(args.controller)
-    kind, plant_path = parse_rig(args.rig)
+    kind, rig_arg = parse_rig(args.rig)
+    command, plant_path = (rig_arg, None) if kind == "exec" else (None, rig_arg)
     plant_cfg = load_plant(plant_path)
-    rig_source = f"plant {plant_path}" if plant_path else "the default plant, the paper's rig"
-    check_rig_compatible(controller, plant_cfg.rig_metadata(), args.controller, rig_source)
+    if command is None:  # an exec: driver tells its rig in its hello, checked below
+        rig_source = f"plant {plant_path}" if plant_path else "the default plant, the paper's rig"
+        check_rig_compatible(controller, plant_cfg.rig_metadata(), args.controller, rig_source)
     scenarios = resolve_scenarios(args.scenario)
     if args.seed is not None and args.seed < 0:
         raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
@@ -181,7 +213,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     fail_safe = FAIL_SAFE_MODES[args.fail_safe]
     several = len(scenarios) > 1
     base_meta = {"controller": args.controller, "controller_sha256": sha256_file(args.controller),
-                 "rig": kind, "fail_safe": args.fail_safe, **plant_meta(plant_path)}
+                 "rig": kind, "fail_safe": args.fail_safe}
+    base_meta.update({"rig_command": command} if command is not None else plant_meta(plant_path))
 
     results: dict[str, dict[str, Any]] = {}
     timings: dict[str, dict[str, Any]] = {}
@@ -189,20 +222,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     warnings: list[dict[str, Any]] = []
     rows = []
     for sc in tqdm(scenarios, desc="scenarios", unit="scenario", disable=None, leave=False):
+        rig: Rig
+        pcfg: PlantConfig | None
         if kind == "sim":
             rig, pcfg, _ = sim_rig_for(sc, plant_cfg, seed)
+        elif command is not None:  # the driver's rig is what it says it is: no truth, no plant
+            pcfg = None
+            rig = ExecRig(exec_command(command, sc.name, seed))
         else:
-            from pneutune.control.sim.closed_loop import scenario_plant
-
             pcfg = scenario_plant(plant_cfg, sc)
             rig = PipeRig(plant=plant_path, scenario=sc.name, seed=seed)
         try:
             check_rig_compatible(controller, rig.rig_metadata(), args.controller,
                                  f"rig {kind}")
             res = run_scenario(controller, sc, rig, supervisor=Supervisor(settings),
-                               realtime=args.realtime, record_truth=True, cfg_vec=cfg_vec,
-                               fail_safe=fail_safe, duration=args.duration, plant=pcfg,
-                               seed=seed)
+                               realtime=args.realtime, record_truth=command is None,
+                               cfg_vec=cfg_vec, fail_safe=fail_safe, duration=args.duration,
+                               plant=pcfg,
+                               seed=seed if command is None or "{seed}" in command else None)
         finally:
             rig.close()
         path = _log_path(args.log, sc.name, several)

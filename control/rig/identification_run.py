@@ -39,7 +39,7 @@ import numpy as np
 from pneutune.control.constants import A_IN, A_OUT, B_IN, B_OUT
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.recording import Recording
-from pneutune.control.rig.protocol import Rig
+from pneutune.control.rig.protocol import Rig, SimulatedRig
 
 #: Duty sweep of the valve tests (1 first: the full-duty charge/discharge).
 DEFAULT_DUTIES: tuple[float, ...] = (1.0, 0.7, 0.5, 0.35, 0.25, 0.18, 0.14, 0.11, 0.08, 0.05)
@@ -287,14 +287,14 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
     Parameters
     ----------
     rig : Rig
-        The rig, sampled every ``rig.Ts`` (``SimRig`` records ``/sim/truth`` too when
-        ``record_truth``).
+        The rig, sampled every ``rig.Ts``.
     segments : sequence of Segment
         The protocol.
     band : float
         Saturation band of the position loop [m].
     record_truth : bool
-        Record ``/sim/truth`` (only meaningful for a simulated rig).
+        Record ``/sim/truth``; the rig must then be a
+        :class:`~pneutune.control.rig.protocol.SimulatedRig`.
     per_control : int
         Rig samples per control period: the duties change only every ``per_control`` samples,
         and every segment lasts a whole number of control periods.
@@ -304,11 +304,21 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
     Returns
     -------
     Recording
+
+    Raises
+    ------
+    TypeError
+        ``record_truth`` for a rig that is not a ``SimulatedRig``.
     """
+    truth: Callable[[], np.ndarray] | None = None
+    if record_truth:
+        if not isinstance(rig, SimulatedRig):
+            raise TypeError(f"record_truth needs a SimulatedRig (one with truth()), got "
+                            f"{type(rig).__name__}")
+        truth = rig.truth
     control_Ts = rig.Ts * per_control
     n_total = protocol_samples(segments, control_Ts, per_control)
-    has_truth = record_truth and hasattr(rig, "truth")
-    rec = Recording(n_total, rig.Ts, truth=has_truth, reference=True)
+    rec = Recording(n_total, rig.Ts, truth=truth is not None, reference=True)
     k = 0
     duties = np.zeros(4)
     for seg in segments:
@@ -318,8 +328,8 @@ def run_protocol(rig: Rig, segments: Sequence[Segment], band: float,
         for j in range(n_seg):
             y = rig.read()
             rec.sensors_[k] = y
-            if has_truth:
-                rec.truth_[k] = rig.truth()  # type: ignore[attr-defined]
+            if truth is not None:
+                rec.truth_[k] = truth()
             control = j % per_control == 0
             if seg.reference is not None:
                 xr, vr, ar = seg.reference(j * rig.Ts)

@@ -1,73 +1,45 @@
-"""The interface a rig driver implements, and an example driver across a process boundary.
+"""The pipe protocol ``pneutune.rig/1``: a rig driver as a program of its own, in any language.
 
-:class:`RigDriver` is what the deploy runtime (:mod:`pneutune.control.rig.runtime`) talks to. A
-hardware driver implements it in Python, or runs as its own process and speaks the pipe
-protocol below (then :class:`PipeRig` is its Python side, unchanged). Three rigs ship:
+The deploy runtime talks to a rig through :class:`pneutune.control.rig.protocol.Rig`. A rig
+driver can implement that protocol as a Python class, or run as a program of its own that
+answers the pipe protocol below on its stdin/stdout: a C program on a DAQ card, a Rust driver
+on a fieldbus, a Python script on a serial port. This module holds both ends:
 
-* :class:`DeploySimRig`: the simulated rig in process (the compiled plant,
-  :class:`pneutune.control.rig.simrig.SimRig`) with the driver extras (sample times, metadata,
-  close);
-* :class:`PipeRig` + ``python -m pneutune.control.driver serve``: the same simulated rig in
-  another process, over the pipe protocol (the example driver, ``deploy --rig pipe-sim``);
-* :class:`pneutune.control.rig.faults.FaultySimRig`: the simulated rig with injected faults.
+* the client: :class:`DriverProcess` (one driver program on two pipes: bounded, timed replies,
+  its stderr tail), :class:`ExecRig` (the :class:`~pneutune.control.rig.protocol.Rig` over it,
+  ``deploy --rig exec:CMD``) and :class:`PipeRig` (the example simulated rig in a child
+  process, with ``truth()``: ``deploy --rig pipe-sim``);
+* the example server: :func:`serve` answers the protocol for :class:`DeploySimRig`, the
+  simulated rig in process (``python -m pneutune.control.driver serve``).
 
-The driver contract (docs/deploy.md has the long form)
-------------------------------------------------------
-Units: SI. Positions in m, pressures in Pa *absolute*, duties 0..1 in the valve order
-``a_in, a_out, b_in, b_out``, times in s on the rig's clock, which starts at 0.
-
-``Ts``
-    The sampling period [s]; it must equal the controller's ``rig.Ts`` (``deploy`` checks it).
-``t``
-    Time of the current sample, ``k Ts`` after ``k`` calls of :meth:`advance`.
-``read()``
-    The sensors at the current sample ``[x, p_a, p_b, p_s]``: the latest value of each
-    channel, taken as close to the tick as the hardware allows; call once per sample. A channel
-    that has never delivered reads NaN. Must not block longer than ~Ts/10.
-``sample_times()`` (optional; returning None means "not known")
-    Rig time at which each channel last delivered a *new* value. The supervisor's staleness
-    rule uses it; without it a frozen position cannot be told from a piston at rest.
-``write(duties)``
-    Command the four duties from now on. Non-blocking. How a new duty takes effect within the
-    running PWM period is the rig's ``pwm_update`` (``immediate``: at once, comparator;
-    ``latched``: at the next period start). Duties outside [0, 1] are a programming error.
-``advance()``
-    Return when the next sample is due (hardware: block until the tick; simulation: integrate
-    to it). **Missed deadline**: if it is called after the next tick has passed, it returns at
-    once and the sample is *late*, never skipped (skipping would break the controller's fixed
-    Ts); the driver counts it. The runtime reports overruns and jitter; a rig that stops
-    ticking is caught by ``limits.sensor_timeout_s``.
-``rig_metadata()``
-    The ``rig`` block of the rig (:data:`~pneutune.control.constants.RIG_KEYS`), written to
-    the run log so that ``identify`` knows the geometry and timing.
-``close()``
-    Write the fail-safe duties (all valves closed,
-    :data:`pneutune.control.rig.supervisor.FAIL_SAFE_DUTIES`) and release the hardware;
-    idempotent. A driver must reach the same state by itself when its client disappears (end
-    of file on its input, a crash) and, on hardware, through a watchdog that cuts the coil
-    power when no ``write`` came for ``sensor_timeout_s``: normally-closed valves are then
-    all closed.
+:mod:`pneutune.control.rig.conformance` checks that a driver program speaks the protocol
+(``python -m pneutune.control.driver check CMD``).
 
 Pipe protocol (``pneutune.rig/1``)
 ----------------------------------
 Binary, little-endian, over the server's stdin (requests) and stdout (replies); stderr is
 prose. Every request is one opcode byte and a fixed-size payload; every reply starts with
 ``K`` (ok) or ``E`` (error, then ``<I`` length and at most 4096 bytes of UTF-8 message; the
-server then closes the valves and exits 1).
+server then writes the fail-safe duties, all valves closed, and exits with status 1).
 
 ==========  ======================  ===========================================================
 request     payload                 reply after ``K``
 ==========  ======================  ===========================================================
 ``H``       (none)                  ``<I`` length, JSON (< 64 KiB): ``protocol``, ``Ts``, ``rig``
 ``R``       (none)                  ``<9d``: t, x, p_a, p_b, p_s, 4 sample times
-``W``       ``<4d`` duties          (nothing)
+``W``       ``<4d`` duties          (nothing); a duty outside [0, 1] (or NaN) gets ``E``
 ``A``       (none)                  ``<d``: the new t
 ``T``       (none)                  ``<6d``: /sim/truth fields (simulated rigs only)
-``C``       (none)                  (nothing); the server writes the fail-safe duties and exits 0
+``C``       (none)                  (nothing); the server writes the fail-safe duties, exits 0
 ==========  ======================  ===========================================================
 
-Doubles travel as IEEE 754 bits, so a run across the pipe gives bit-identical numbers to the
-same run in process. The client waits at most ``timeout`` seconds for a reply
+An unknown opcode gets ``E``. End of input (the client is gone) makes the server write the
+fail-safe duties and exit 0. The hello's ``rig`` is the rig block: every key of
+:data:`~pneutune.control.constants.RIG_KEYS` (optionally the hints of
+:data:`~pneutune.control.constants.RIG_HINT_KEYS`), with ``rig.Ts`` equal to ``Ts``. Sample
+times are NaN for a channel that never delivered. Doubles travel as IEEE 754 bits, so a run
+across the pipe gives bit-identical numbers to the same run in process. The client waits at
+most ``startup_timeout`` for the hello and ``timeout`` for every later reply
 (:class:`RigIOError`). Only pipes to a child process: nothing listens on a network.
 """
 
@@ -75,81 +47,70 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import re
 import select
+import shlex
 import struct
 import subprocess
 import sys
-from collections.abc import Sequence
-from typing import BinaryIO, Protocol, runtime_checkable
+import threading
+import time
+from collections import deque
+from collections.abc import Mapping, Sequence
+from typing import Any, BinaryIO
 
 import numpy as np
+from pydantic import ValidationError
 
-from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.errors import PneutuneError
+from pneutune.control.constants import RIG_HINT_KEYS, RIG_KEYS
+from pneutune.control.contracts.plant import PlantConfig, RigConfig
+from pneutune.control.contracts.yamlio import validation_error
+from pneutune.control.errors import ExperimentError, PneutuneError
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import PlantParams
 from pneutune.control.rig.simrig import SimRig
-from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES
 
 PROTOCOL = "pneutune.rig/1"
-_MAX_HELLO = 64 * 1024
-_MAX_ERROR = 4096
-_READ = struct.Struct("<9d")
-_DUTIES = struct.Struct("<4d")
-_TIME = struct.Struct("<d")
-_TRUTH = struct.Struct("<6d")
-_LEN = struct.Struct("<I")
+#: Default longest wait for a reply after the hello [s].
+DEFAULT_TIMEOUT = 2.0
+#: Default longest wait for the hello [s]: a driver program starts (a Python one imports its
+#: libraries, about 1 s for the example server on a busy 2-core machine) and opens its hardware.
+DEFAULT_STARTUP_TIMEOUT = 10.0
+#: Placeholders a driver command may contain, replaced for each scenario run.
+COMMAND_PLACEHOLDERS: tuple[str, ...] = ("scenario", "seed")
+#: Largest hello and error message [bytes].
+MAX_HELLO = 64 * 1024
+MAX_ERROR = 4096
+#: Frames of the protocol: the reply to R, the payload of W, the replies to A and T, a length.
+FRAME_READ = struct.Struct("<9d")
+FRAME_DUTIES = struct.Struct("<4d")
+FRAME_TIME = struct.Struct("<d")
+FRAME_TRUTH = struct.Struct("<6d")
+FRAME_LENGTH = struct.Struct("<I")
+_TAIL_LINES = 20
+_PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
 
 
 class RigIOError(PneutuneError, OSError):
     """The rig did not answer, answered garbage, or reported an error."""
 
 
-@runtime_checkable
-class RigDriver(Protocol):
-    """What a hardware (or simulated) rig driver provides; see the module docstring.
+class RigErrorReply(RigIOError):
+    """The driver answered a request with ``E``; :attr:`message` is its text."""
 
-    Attributes
-    ----------
-    Ts : float
-        Sampling period [s].
-    t : float
-        Time of the current sample [s].
-    """
-
-    Ts: float
-    t: float
-
-    def read(self) -> np.ndarray:
-        """Sensors at the current sample: [x [m], p_a, p_b, p_s [Pa abs]]."""
-        ...
-
-    def sample_times(self) -> np.ndarray | None:
-        """Rig time each channel last delivered a new value [s], or None if unknown."""
-        ...
-
-    def write(self, duties: np.ndarray) -> None:
-        """Command the duties [a_in, a_out, b_in, b_out] (0..1) from now on."""
-        ...
-
-    def advance(self) -> None:
-        """Return when the next sample is due (late, never skipped, on a missed deadline)."""
-        ...
-
-    def rig_metadata(self) -> dict[str, float | str]:
-        """The ``rig`` block of this rig (every key of RIG_KEYS)."""
-        ...
-
-    def close(self) -> None:
-        """Write the fail-safe duties (all valves closed) and release the rig; idempotent."""
-        ...
+    def __init__(self, message: str) -> None:
+        self.message = message
+        super().__init__(f"the driver replied with an error: {message}")
 
 
 class DeploySimRig(SimRig):
-    """The in-process simulated rig with the :class:`RigDriver` extras.
+    """The in-process simulated rig as deploy and the example server use it.
 
-    Every :meth:`read` is a new sample on every channel (``sample_times()`` is ``t``). The
+    A :class:`~pneutune.control.rig.simrig.SimRig` whose compiled calls are loaded before the
+    first sample (so a paced run's first sample is on time) and which keeps the duties last
+    written (:attr:`last_duties`). Every :meth:`read` is a new sample on every channel. The
     sensor noise is drawn four standard normals per read from ``default_rng(seed)``, the same
     sequence as :func:`pneutune.control.sim.closed_loop.simulate_scenario` draws as one
     ``(n, 4)`` block, so a deploy run and a ``simulate`` run with the same seed see the same
@@ -170,7 +131,6 @@ class DeploySimRig(SimRig):
     def __init__(self, plant_cfg: PlantConfig | PlantParams, x0: float | None = None,
                  pressures0: tuple[float, float] | None = None, seed: int | None = None) -> None:
         super().__init__(plant_cfg, x0=x0, pressures0=pressures0, seed=seed)
-        self.closed = False
         self.last_duties = np.zeros(4)
         self._warm_up()
 
@@ -186,199 +146,139 @@ class DeploySimRig(SimRig):
         plant.set_duties(p.vec, s, 0.0, np.zeros(4))
         plant.advance(p.vec, s, self.Ts, self.supply, p.force_steps)
 
-    def sample_times(self) -> np.ndarray | None:
-        """Every channel is refreshed at every sample: ``[t, t, t, t]``."""
-        return np.full(4, self.t)
-
     def write(self, duties: np.ndarray) -> None:
         """Command the four duties from now on (kept in :attr:`last_duties`)."""
         d = np.ascontiguousarray(duties, dtype=np.float64)
         self.last_duties = d.copy()
         super().write(d)
 
-    def rig_metadata(self) -> dict[str, float | str]:
-        """The plant's ``rig`` block."""
-        return self.params.config.rig_metadata()
-
-    def close(self) -> None:
-        """Write the fail-safe duties (all closed); idempotent."""
-        if not self.closed:
-            self.write(np.asarray(FAIL_SAFE_DUTIES))
-            self.closed = True
-
 
 # ---------------------------------------------------------------------------------------------
-# Client
+# The hello and the driver command
 # ---------------------------------------------------------------------------------------------
 
 
-class PipeRig:
-    """A :class:`RigDriver` whose rig runs in a child process, over the pipe protocol.
+def parse_hello(body: bytes) -> tuple[float, Mapping[str, Any]]:
+    """The sampling period and the (unchecked) rig block of a hello reply.
 
     Parameters
     ----------
-    command : sequence of str, optional
-        The server command; default :func:`sim_server_command` of the other arguments.
-    plant : path-like, optional
-        plant.yaml of the simulated rig (default: the paper's rig).
-    scenario : str, optional
-        Scenario whose plant changes (payload, force steps) the simulated rig applies; the
-        piston then starts at rest where the scenario's reference starts.
-    seed : int, optional
-        Sensor-noise seed.
-    timeout : float
-        Longest wait for a reply [s].
+    body : bytes
+        The JSON after ``K`` and the length.
 
-    Notes
-    -----
-    Use as a context manager (or call :meth:`close`): closing sends ``C`` (fail-safe duties)
-    and waits for the server to exit.
+    Returns
+    -------
+    (Ts, rig)
+        ``Ts`` [s], finite and positive; ``rig`` the JSON object (see :func:`check_rig_block`).
+
+    Raises
+    ------
+    RigIOError
+        Not a JSON object, another protocol, no usable ``Ts`` or no ``rig`` object.
     """
+    try:
+        meta = json.loads(body.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RigIOError(f"hello: not UTF-8 JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise RigIOError(f"hello: expected a JSON object, got {type(meta).__name__}")
+    if meta.get("protocol") != PROTOCOL:
+        raise RigIOError(f"hello: protocol must be {PROTOCOL!r}, got {meta.get('protocol')!r}")
+    Ts = meta.get("Ts")
+    if isinstance(Ts, bool) or not isinstance(Ts, (int, float)) or not (
+            math.isfinite(Ts) and Ts > 0.0):
+        raise RigIOError(f"hello: Ts must be a positive number of seconds, got {Ts!r}")
+    rig = meta.get("rig")
+    if not isinstance(rig, dict):
+        raise RigIOError(f"hello: rig must be a JSON object (the rig block), got {rig!r}")
+    return float(Ts), rig
 
-    def __init__(self, command: Sequence[str] | None = None,
-                 plant: str | os.PathLike[str] | None = None, scenario: str | None = None,
-                 seed: int | None = None, timeout: float = 2.0) -> None:
-        cmd = list(command) if command is not None else sim_server_command(plant, scenario, seed)
-        self.timeout = float(timeout)
-        self.closed = False
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE, bufsize=0)
-        if self._proc.stdin is None or self._proc.stdout is None:  # pragma: no cover
-            raise RigIOError(f"cannot open pipes to {cmd}")
-        self._in: BinaryIO = self._proc.stdin
-        self._out: BinaryIO = self._proc.stdout
-        self._rbuf = bytearray()
-        hello = self._request(b"H", b"", None)
-        meta = json.loads(hello.decode("utf-8"))
-        if meta.get("protocol") != PROTOCOL:
-            self._kill()
-            raise RigIOError(f"rig server speaks {meta.get('protocol')!r}, expected {PROTOCOL!r}")
-        self.Ts = float(meta["Ts"])
-        self._rig_meta: dict[str, float | str] = dict(meta["rig"])
-        self.t = 0.0
-        self._stamps = np.zeros(4)
-        self._duties_buf = bytearray(1 + _DUTIES.size)
-        self._duties_buf[0:1] = b"W"
 
-    # -- transport ------------------------------------------------------------------------------
+def check_rig_block(rig: Mapping[str, Any], Ts: float) -> dict[str, float | str]:
+    """The hello's rig block, complete and valid, as the run log stores it.
 
-    def _recv(self, n: int) -> bytes:
-        fd = self._out.fileno()
-        while len(self._rbuf) < n:
-            ready, _, _ = select.select([fd], [], [], self.timeout)
-            if not ready:
-                self._kill()
-                raise RigIOError(f"rig server: no reply within {self.timeout:g} s")
-            chunk = os.read(fd, 65536)
-            if not chunk:
-                err = self._stderr_tail()
-                raise RigIOError("rig server closed its output" + (f": {err}" if err else ""))
-            self._rbuf += chunk
-        data = bytes(self._rbuf[:n])
-        del self._rbuf[:n]
-        return data
+    Parameters
+    ----------
+    rig : mapping
+        The hello's ``rig`` object.
+    Ts : float
+        The hello's ``Ts`` [s]; ``rig.Ts`` must equal it.
 
-    def _request(self, op: bytes, payload: bytes, size: int | None) -> bytes:
-        """Send ``op + payload``; return the reply body (``size`` bytes, or length-prefixed)."""
-        if self.closed:
-            raise RigIOError("the rig is closed")
-        try:
-            self._in.write(op + payload)
-            self._in.flush()
-        except (BrokenPipeError, OSError) as exc:
-            err = self._stderr_tail()
-            raise RigIOError(f"rig server gone ({exc})" + (f": {err}" if err else "")) from None
-        status = self._recv(1)
-        if status == b"E":
-            (length,) = _LEN.unpack(self._recv(_LEN.size))
-            msg = self._recv(min(length, _MAX_ERROR)).decode("utf-8", "replace")
-            self._kill()
-            raise RigIOError(f"rig server: {msg}")
-        if status != b"K":
-            self._kill()
-            raise RigIOError(f"rig server: bad reply status {status!r}")
-        if size is None:
-            (length,) = _LEN.unpack(self._recv(_LEN.size))
-            if length > _MAX_HELLO:
-                self._kill()
-                raise RigIOError(f"rig server: reply of {length} bytes exceeds {_MAX_HELLO}")
-            return self._recv(length)
-        return self._recv(size) if size else b""
+    Returns
+    -------
+    dict
+        Every key of ``RIG_KEYS`` (floats, and ``pwm_update``), then any hint of
+        ``RIG_HINT_KEYS``.
 
-    def _stderr_tail(self) -> str:
-        proc = self._proc
-        if proc.poll() is None or proc.stderr is None:
-            return ""
-        try:
-            text = proc.stderr.read(_MAX_ERROR).decode("utf-8", "replace")
-        except OSError:  # pragma: no cover
-            return ""
-        lines = [ln for ln in text.strip().splitlines() if ln.strip()]
-        return lines[-1] if lines else ""
+    Raises
+    ------
+    RigIOError
+        A missing or unknown key, a value of the wrong type or out of the contract's range
+        (:class:`~pneutune.control.contracts.plant.RigConfig`), or ``rig.Ts != Ts``.
+    """
+    missing = [k for k in RIG_KEYS if k not in rig]
+    if missing:
+        raise RigIOError(f"hello: the rig block lacks {', '.join(missing)} (it must have "
+                         f"every key of {', '.join(RIG_KEYS)})")
+    unknown = sorted(set(rig) - set(RIG_KEYS) - set(RIG_HINT_KEYS))
+    if unknown:
+        raise RigIOError(f"hello: the rig block has unknown key(s) {', '.join(unknown)}")
+    try:
+        block = RigConfig.model_validate({k: rig[k] for k in RIG_KEYS})
+    except ValidationError as exc:
+        raise RigIOError(str(validation_error("hello", exc, prefix="rig"))) from None
+    if block.Ts != Ts:
+        raise RigIOError(f"hello: rig.Ts must equal Ts = {Ts!r} s, got {block.Ts!r} s")
+    out: dict[str, float | str] = {k: getattr(block, k) for k in RIG_KEYS}
+    for k in RIG_HINT_KEYS:
+        if k in rig:
+            v = rig[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (
+                    math.isfinite(v) and v > 0.0):
+                raise RigIOError(f"hello: rig.{k} must be a positive number, got {v!r}")
+            out[k] = float(v)
+    return out
 
-    def _kill(self) -> None:
-        self.closed = True
-        if self._proc.poll() is None:
-            self._proc.kill()
-        self._proc.wait(timeout=5.0)
-        for fh in (self._proc.stdin, self._proc.stdout, self._proc.stderr):
-            if fh is not None:
-                fh.close()
 
-    # -- RigDriver ------------------------------------------------------------------------------
+def exec_command(template: str, scenario: str, seed: int) -> list[str]:
+    """The argument list of a driver command for one scenario run.
 
-    def read(self) -> np.ndarray:
-        """Sensors at the current sample [x, p_a, p_b, p_s]."""
-        vals = _READ.unpack(self._request(b"R", b"", _READ.size))
-        self.t = vals[0]
-        self._stamps = np.array(vals[5:9])
-        return np.array(vals[1:5])
+    ``{scenario}`` and ``{seed}`` in ``template`` are replaced by the scenario's name and the
+    seed, then the text is split like a POSIX shell would (:func:`shlex.split`; no shell runs).
+    A simulated or test rig needs them; a hardware driver ignores them.
 
-    def sample_times(self) -> np.ndarray | None:
-        """Sample times reported with the last :meth:`read`."""
-        return self._stamps.copy()
+    Parameters
+    ----------
+    template : str
+        E.g. ``"python -m pneutune.control.driver serve --scenario {scenario} --seed {seed}"``.
+    scenario : str
+        Scenario name.
+    seed : int
+        Sensor-noise seed of a simulated rig.
 
-    def write(self, duties: np.ndarray) -> None:
-        """Command the four duties."""
-        d = np.asarray(duties, dtype=np.float64)
-        _DUTIES.pack_into(self._duties_buf, 1, d[0], d[1], d[2], d[3])
-        self._request(bytes(self._duties_buf[:1]), bytes(self._duties_buf[1:]), 0)
+    Returns
+    -------
+    list of str
 
-    def advance(self) -> None:
-        """Move to the next sample."""
-        (self.t,) = _TIME.unpack(self._request(b"A", b"", _TIME.size))
-
-    def truth(self) -> np.ndarray:
-        """The simulated rig's ``/sim/truth`` fields at the current sample."""
-        return np.array(_TRUTH.unpack(self._request(b"T", b"", _TRUTH.size)))
-
-    def rig_metadata(self) -> dict[str, float | str]:
-        """The server rig's ``rig`` block."""
-        return dict(self._rig_meta)
-
-    def close(self) -> None:
-        """Fail-safe duties, then stop the server; idempotent."""
-        if self.closed:
-            return
-        try:
-            self._request(b"C", b"", 0)
-        except RigIOError:
-            pass
-        self.closed = True
-        try:
-            self._proc.wait(timeout=5.0)
-        except subprocess.TimeoutExpired:  # pragma: no cover
-            self._proc.kill()
-            self._proc.wait(timeout=5.0)
-        for fh in (self._proc.stdin, self._proc.stdout, self._proc.stderr):
-            if fh is not None:
-                fh.close()
-
-    def __enter__(self) -> PipeRig:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    Raises
+    ------
+    ExperimentError
+        An empty command, unbalanced quotes, or a placeholder other than ``{scenario}`` and
+        ``{seed}``.
+    """
+    unknown = [m for m in _PLACEHOLDER.findall(template) if m not in COMMAND_PLACEHOLDERS]
+    if unknown:
+        raise ExperimentError(f"driver command {template!r}: unknown placeholder "
+                              f"{{{unknown[0]}}}; it may contain {{scenario}} and {{seed}}")
+    text = template.replace("{scenario}", scenario).replace("{seed}", str(int(seed)))
+    try:
+        argv = shlex.split(text)
+    except ValueError as exc:
+        raise ExperimentError(f"driver command {template!r}: {exc}") from None
+    if not argv:
+        raise ExperimentError("driver command is empty: give the program to start, e.g. "
+                              "exec:\"./rig_driver --port /dev/ttyUSB0\"")
+    return argv
 
 
 def sim_server_command(plant: str | os.PathLike[str] | None = None, scenario: str | None = None,
@@ -395,13 +295,320 @@ def sim_server_command(plant: str | os.PathLike[str] | None = None, scenario: st
 
 
 # ---------------------------------------------------------------------------------------------
+# Client
+# ---------------------------------------------------------------------------------------------
+
+
+class DriverProcess:
+    """One driver program on the other end of two pipes: requests, timed replies, stderr.
+
+    A thread keeps the last lines of the program's stderr (so a chatty driver never blocks on
+    a full pipe, and an error names what the driver said last).
+
+    Parameters
+    ----------
+    command : sequence of str
+        Program and arguments (no shell).
+
+    Raises
+    ------
+    RigIOError
+        The program cannot be started (not there, not executable).
+    """
+
+    def __init__(self, command: Sequence[str]) -> None:
+        self.command = list(command)
+        try:
+            self._proc = subprocess.Popen(self.command, stdin=subprocess.PIPE,
+                                          stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                          bufsize=0)
+        except OSError as exc:
+            raise RigIOError(f"cannot start the rig driver `{shlex.join(self.command)}`: "
+                             f"{exc.strerror or exc}") from None
+        if (self._proc.stdin is None or self._proc.stdout is None
+                or self._proc.stderr is None):  # pragma: no cover - PIPE always gives them
+            raise RigIOError(f"cannot open pipes to {self.command}")
+        self._in: BinaryIO = self._proc.stdin
+        self._out: BinaryIO = self._proc.stdout
+        self._rbuf = bytearray()
+        self._tail: deque[str] = deque(maxlen=_TAIL_LINES)
+        self._tail_thread = threading.Thread(target=self._drain_stderr, args=(self._proc.stderr,),
+                                             daemon=True)
+        self._tail_thread.start()
+
+    def _drain_stderr(self, err: BinaryIO) -> None:
+        with err:
+            for line in iter(err.readline, b""):
+                text = line.decode("utf-8", "replace").strip()
+                if text:
+                    self._tail.append(text)
+
+    @property
+    def returncode(self) -> int | None:
+        """Exit status, or None while the program runs."""
+        return self._proc.poll()
+
+    def stderr_tail(self, lines: int = 3) -> str:
+        """The last ``lines`` non-empty lines the program wrote on stderr, joined by `` | ``."""
+        return " | ".join(list(self._tail)[-lines:])
+
+    def _ended(self) -> str:
+        """`` (exit status N): <stderr tail>`` once the program has ended (waits up to 1 s)."""
+        try:
+            rc: int | None = self._proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            rc = None
+        self._tail_thread.join(timeout=0.5)
+        tail = self.stderr_tail()
+        return (f" (exit status {rc})" if rc is not None else "") + (f": {tail}" if tail else "")
+
+    def send(self, data: bytes) -> None:
+        """Write one request.
+
+        Raises
+        ------
+        RigIOError
+            The program is gone (its stdin is closed).
+        """
+        try:
+            self._in.write(data)
+            self._in.flush()
+        except (BrokenPipeError, OSError, ValueError) as exc:
+            raise RigIOError(f"the driver is gone ({exc}){self._ended()}") from None
+
+    def _recv(self, n: int, deadline: float, timeout: float) -> bytes:
+        fd = self._out.fileno()
+        while len(self._rbuf) < n:
+            ready, _, _ = select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
+            if not ready:
+                raise RigIOError(f"no reply from the driver within {timeout:g} s")
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                raise RigIOError(f"the driver closed its output{self._ended()}")
+            self._rbuf += chunk
+        data = bytes(self._rbuf[:n])
+        del self._rbuf[:n]
+        return data
+
+    def reply(self, size: int | None, timeout: float) -> bytes:
+        """Read one reply and return its body.
+
+        Parameters
+        ----------
+        size : int or None
+            Body size after ``K`` [bytes]; None: a ``<I`` length, then that many bytes
+            (at most 64 KiB).
+        timeout : float
+            Longest wait for the whole reply [s].
+
+        Raises
+        ------
+        RigErrorReply
+            The reply was ``E``.
+        RigIOError
+            No (complete) reply within ``timeout``, end of output, a bad status byte or an
+            oversized body.
+        """
+        deadline = time.monotonic() + timeout
+        status = self._recv(1, deadline, timeout)
+        if status == b"E":
+            (length,) = FRAME_LENGTH.unpack(self._recv(FRAME_LENGTH.size, deadline, timeout))
+            if length > MAX_ERROR:
+                raise RigIOError(f"the driver's error message of {length} bytes exceeds "
+                                 f"{MAX_ERROR}")
+            raise RigErrorReply(self._recv(length, deadline, timeout).decode("utf-8", "replace"))
+        if status != b"K":
+            raise RigIOError(f"the driver replied with status {status!r}, expected b'K' or b'E'")
+        if size is None:
+            (length,) = FRAME_LENGTH.unpack(self._recv(FRAME_LENGTH.size, deadline, timeout))
+            if length > MAX_HELLO:
+                raise RigIOError(f"the driver's reply of {length} bytes exceeds {MAX_HELLO}")
+            return self._recv(length, deadline, timeout)
+        return self._recv(size, deadline, timeout) if size else b""
+
+    def close_input(self) -> None:
+        """Close the program's stdin (end of input: it must close its valves and exit)."""
+        try:
+            self._in.close()
+        except OSError:
+            pass
+
+    def wait(self, timeout: float) -> int | None:
+        """The exit status once the program has ended, or None if it runs after ``timeout`` s."""
+        try:
+            return self._proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def end(self, timeout: float) -> int:
+        """End the session: end of input, ``timeout`` s to exit by itself, else kill.
+
+        Returns
+        -------
+        int
+            The exit status (negative: killed by that signal).
+        """
+        self.close_input()
+        rc = self.wait(timeout)
+        if rc is None:
+            self._proc.kill()
+            rc = self._proc.wait(timeout=5.0)
+        self._out.close()
+        self._tail_thread.join(timeout=0.5)
+        return rc
+
+
+class ExecRig:
+    """A :class:`~pneutune.control.rig.protocol.Rig` whose driver is a program of its own.
+
+    The program speaks the pipe protocol (module docstring) on its stdin/stdout; it is started
+    here, greeted (``H``) and its hello checked (:func:`check_rig_block`).
+
+    Parameters
+    ----------
+    command : sequence of str
+        Program and arguments (:func:`exec_command` makes them from a ``--rig exec:`` text).
+    timeout : float
+        Longest wait for a reply after the hello [s].
+    startup_timeout : float
+        Longest wait for the hello [s].
+
+    Raises
+    ------
+    RigIOError
+        The program is not there, dies before it answers, answers late or with a bad hello;
+        the message names the command and ends with the program's stderr tail.
+
+    Notes
+    -----
+    Use as a context manager (or call :meth:`close`): closing sends ``C`` (fail-safe duties)
+    and waits for the program to exit. After an error reply or a timeout the client closes
+    the program's stdin, gives it ``timeout`` to close its valves and exit, then kills it.
+    """
+
+    def __init__(self, command: Sequence[str], timeout: float = DEFAULT_TIMEOUT,
+                 startup_timeout: float = DEFAULT_STARTUP_TIMEOUT) -> None:
+        self.command = list(command)
+        self.timeout = float(timeout)
+        self.closed = False
+        self.t = 0.0
+        self._stamps = np.zeros(4)
+        self._duties_buf = bytearray(1 + FRAME_DUTIES.size)
+        self._duties_buf[0:1] = b"W"
+        self._driver = DriverProcess(self.command)
+        try:
+            body = self._request(b"H", None, startup_timeout)
+            Ts, rig = parse_hello(body)
+            self._rig_meta = check_rig_block(rig, Ts)
+        except RigIOError as exc:
+            self._end()
+            raise RigIOError(f"rig driver `{shlex.join(self.command)}` failed at its hello: "
+                             f"{exc}") from None
+        self.Ts = Ts
+
+    def _end(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self._driver.end(self.timeout)
+
+    def _request(self, request: bytes, size: int | None, timeout: float | None = None) -> bytes:
+        """Send ``request`` (opcode and payload); return the reply body (see
+        :meth:`DriverProcess.reply`). Any failure ends the driver."""
+        if self.closed:
+            raise RigIOError("the rig is closed")
+        try:
+            self._driver.send(request)
+            return self._driver.reply(size, self.timeout if timeout is None else timeout)
+        except RigIOError:
+            self._end()
+            raise
+
+    def read(self) -> np.ndarray:
+        """Sensors at the current sample [x, p_a, p_b, p_s]."""
+        vals = FRAME_READ.unpack(self._request(b"R", FRAME_READ.size))
+        self.t = vals[0]
+        self._stamps = np.array(vals[5:9])
+        return np.array(vals[1:5])
+
+    def sample_times(self) -> np.ndarray | None:
+        """Sample times reported with the last :meth:`read`."""
+        return self._stamps.copy()
+
+    def write(self, duties: np.ndarray) -> None:
+        """Command the four duties."""
+        d = np.asarray(duties, dtype=np.float64)
+        FRAME_DUTIES.pack_into(self._duties_buf, 1, d[0], d[1], d[2], d[3])
+        self._request(bytes(self._duties_buf), 0)
+
+    def advance(self) -> None:
+        """Move to the next sample."""
+        (self.t,) = FRAME_TIME.unpack(self._request(b"A", FRAME_TIME.size))
+
+    def rig_metadata(self) -> dict[str, float | str]:
+        """The driver's ``rig`` block, from its hello."""
+        return dict(self._rig_meta)
+
+    def close(self) -> None:
+        """Fail-safe duties (``C``), then let the driver exit; idempotent."""
+        if self.closed:
+            return
+        try:
+            self._request(b"C", 0)
+        except RigIOError:
+            return  # _request has ended the driver
+        self._end()
+
+    def __enter__(self) -> ExecRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class PipeRig(ExecRig):
+    """The example simulated rig in a child process: an :class:`ExecRig` with ``truth()``.
+
+    A :class:`~pneutune.control.rig.protocol.SimulatedRig` (``deploy --rig pipe-sim``).
+
+    Parameters
+    ----------
+    command : sequence of str, optional
+        The server command; default :func:`sim_server_command` of the other arguments.
+    plant : path-like, optional
+        plant.yaml of the simulated rig (default: the paper's rig).
+    scenario : str, optional
+        Scenario whose plant changes (payload, force steps) the simulated rig applies; the
+        piston then starts at rest where the scenario's reference starts.
+    seed : int, optional
+        Sensor-noise seed.
+    timeout, startup_timeout : float
+        As :class:`ExecRig` [s].
+    """
+
+    def __init__(self, command: Sequence[str] | None = None,
+                 plant: str | os.PathLike[str] | None = None, scenario: str | None = None,
+                 seed: int | None = None, timeout: float = DEFAULT_TIMEOUT,
+                 startup_timeout: float = DEFAULT_STARTUP_TIMEOUT) -> None:
+        super().__init__(command if command is not None
+                         else sim_server_command(plant, scenario, seed),
+                         timeout=timeout, startup_timeout=startup_timeout)
+
+    def truth(self) -> np.ndarray:
+        """The simulated rig's ``/sim/truth`` fields at the current sample."""
+        return np.array(FRAME_TRUTH.unpack(self._request(b"T", FRAME_TRUTH.size)))
+
+    def __enter__(self) -> PipeRig:
+        return self
+
+
+# ---------------------------------------------------------------------------------------------
 # Server
 # ---------------------------------------------------------------------------------------------
 
 
 def _reply_error(out: BinaryIO, message: str) -> None:
-    body = message.encode("utf-8")[:_MAX_ERROR]
-    out.write(b"E" + _LEN.pack(len(body)) + body)
+    body = message.encode("utf-8")[:MAX_ERROR]
+    out.write(b"E" + FRAME_LENGTH.pack(len(body)) + body)
     out.flush()
 
 
@@ -443,12 +650,12 @@ def serve(rig: DeploySimRig, inp: BinaryIO, out: BinaryIO) -> int:
             if op == b"R":
                 vals = rig.read()
                 st = rig.sample_times()
-                out.write(b"K" + _READ.pack(rig.t, *vals.tolist(), *st.tolist()))
+                out.write(b"K" + FRAME_READ.pack(rig.t, *vals.tolist(), *st.tolist()))
             elif op == b"W":
-                raw = _read_exact(inp, _DUTIES.size)
+                raw = _read_exact(inp, FRAME_DUTIES.size)
                 if raw is None:
                     return 0
-                d = np.array(_DUTIES.unpack(raw))
+                d = np.array(FRAME_DUTIES.unpack(raw))
                 if not np.all((d >= 0.0) & (d <= 1.0)):
                     _reply_error(out, f"duties must be in [0, 1], got {d.tolist()}")
                     return 1
@@ -456,11 +663,11 @@ def serve(rig: DeploySimRig, inp: BinaryIO, out: BinaryIO) -> int:
                 out.write(b"K")
             elif op == b"A":
                 rig.advance()
-                out.write(b"K" + _TIME.pack(rig.t))
+                out.write(b"K" + FRAME_TIME.pack(rig.t))
             elif op == b"T":
-                out.write(b"K" + _TRUTH.pack(*rig.truth().tolist()))
+                out.write(b"K" + FRAME_TRUTH.pack(*rig.truth().tolist()))
             elif op == b"H":
-                out.write(b"K" + _LEN.pack(len(hello)) + hello)
+                out.write(b"K" + FRAME_LENGTH.pack(len(hello)) + hello)
             elif op == b"C":
                 rig.close()
                 out.write(b"K")
@@ -476,50 +683,57 @@ def serve(rig: DeploySimRig, inp: BinaryIO, out: BinaryIO) -> int:
         rig.close()
 
 
-def _serve_main(argv: Sequence[str] | None = None) -> int:
+def add_serve_parser(sub: Any) -> None:
+    """Add the ``serve`` subcommand to the subparsers ``sub`` of ``python -m
+    pneutune.control.driver``."""
+    p = sub.add_parser(
+        "serve", help="serve the simulated rig on stdin/stdout (the example driver)",
+        description=f"Serve the simulated rig on stdin/stdout ({PROTOCOL}; "
+                    "pneutune/control/rig/pipe.py). Started by `deploy --rig pipe-sim`, or by "
+                    "`deploy --rig exec:\"python -m pneutune.control.driver serve --scenario "
+                    "{scenario} --seed {seed}\"`.")
+    p.add_argument("--plant", help="plant.yaml (default: the paper's rig)")
+    p.add_argument("--scenario", help="apply this scenario's plant changes, start at its x_r(0)")
+    p.add_argument("--seed", type=int, help="sensor-noise seed (default: sim.seed)")
+    p.set_defaults(run=serve_main)
+
+
+def serve_main(args: argparse.Namespace) -> int:
+    """``serve``: the simulated rig on this process's stdin/stdout until ``C`` or end of input.
+
+    A bad plant or scenario is answered with ``E`` (the client waits for the hello) and one
+    ``error:`` line on stderr; exit status 2.
+    """
     from pneutune.control.contracts.plant import load_plant
     from pneutune.control.sim.closed_loop import scenario_plant
     from pneutune.control.sim.scenarios import resolve_scenarios
 
-    parser = argparse.ArgumentParser(
-        prog="python -m pneutune.control.driver",
-        description="Example rig driver: the simulated rig served over stdin/stdout "
-                    f"({PROTOCOL}, see pneutune/control/rig/pipe.py). Started by PipeRig.")
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("serve", help="serve the simulated rig on stdin/stdout")
-    p.add_argument("--plant", help="plant.yaml (default: the paper's rig)")
-    p.add_argument("--scenario", help="apply this scenario's plant changes, start at its x_r(0)")
-    p.add_argument("--seed", type=int, help="sensor-noise seed (default: sim.seed)")
-    args = parser.parse_args(argv)
-    plant_cfg = load_plant(args.plant)
-    x0 = None
-    if args.scenario is not None:
-        found = resolve_scenarios(args.scenario)
-        if len(found) != 1:
-            parser.error(f"--scenario takes one scenario name, got the group {args.scenario!r}")
-        sc = found[0]
-        plant_cfg = scenario_plant(plant_cfg, sc)
-        x0 = float(sc.reference_array(plant_cfg.rig.Ts,
-                                      0.5 * (plant_cfg.rig.x_min + plant_cfg.rig.x_max))[0, 0])
-    rig = DeploySimRig(plant_cfg, x0=x0, seed=args.seed)
-    return serve(rig, sys.stdin.buffer, sys.stdout.buffer)
-
-
-def main() -> int:  # pragma: no cover - exercised through PipeRig in a subprocess
     try:
-        return _serve_main()
+        plant_cfg = load_plant(args.plant)
+        x0 = None
+        if args.scenario is not None:
+            found = resolve_scenarios(args.scenario)
+            if len(found) != 1:
+                raise ExperimentError(f"--scenario takes one scenario name, got the group "
+                                      f"{args.scenario!r}")
+            sc = found[0]
+            plant_cfg = scenario_plant(plant_cfg, sc)
+            x0 = float(sc.reference_array(plant_cfg.rig.Ts,
+                                          0.5 * (plant_cfg.rig.x_min + plant_cfg.rig.x_max))[0, 0])
+        rig = DeploySimRig(plant_cfg, x0=x0, seed=args.seed)
     except PneutuneError as exc:
         sys.stderr.write(f"error: {exc}\n")
-        # the client is waiting for the hello: answer it with the error
         try:
             _reply_error(sys.stdout.buffer, str(exc))
         except OSError:
             pass
         return 2
+    return serve(rig, sys.stdin.buffer, sys.stdout.buffer)
 
 
-__all__ = ["PROTOCOL", "DeploySimRig", "PipeRig", "RigDriver", "RigIOError", "serve",
-           "sim_server_command"]
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+__all__ = ["COMMAND_PLACEHOLDERS", "DEFAULT_STARTUP_TIMEOUT", "DEFAULT_TIMEOUT", "FRAME_DUTIES",
+           "FRAME_LENGTH", "FRAME_READ", "FRAME_TIME", "FRAME_TRUTH", "MAX_ERROR", "MAX_HELLO",
+           "PROTOCOL",
+           "DeploySimRig", "DriverProcess", "ExecRig", "PipeRig", "RigErrorReply", "RigIOError",
+           "add_serve_parser", "check_rig_block", "exec_command", "parse_hello", "serve",
+           "serve_main", "sim_server_command"]

@@ -2,7 +2,8 @@
 
 Per sample k (rig time t = k Ts), in this order:
 
-1. ``rig.read()`` the sensors ``[x, p_a, p_b, p_s]`` (and ``rig.sample_times()`` if it has them);
+1. ``rig.read()`` the sensors ``[x, p_a, p_b, p_s]`` and ``rig.sample_times()`` (None when the
+   rig cannot tell; :class:`pneutune.control.rig.protocol.Rig`);
 2. the supervisor checks them (:meth:`pneutune.control.rig.supervisor.Supervisor.check_sensors`);
    a fault writes the fail-safe duties *in this sample*, records the event and stops the loop:
    the bad sample never reaches the control law;
@@ -45,7 +46,7 @@ from pneutune.control.law.darc import MEAS_SIZE, S_THETA, init_state, step_into
 from pneutune.control.law.layout import pack
 from pneutune.control.logs.recording import Recording
 from pneutune.control.rig.pipe import DeploySimRig, RigIOError
-from pneutune.control.rig.protocol import Rig
+from pneutune.control.rig.protocol import Rig, SimulatedRig
 from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES, Event, Supervisor, SupervisorSettings
 from pneutune.control.sim.closed_loop import (
     LOG_INDEX,
@@ -199,9 +200,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     Parameters
     ----------
     rig : Rig
-        The rig (:class:`pneutune.control.rig.protocol.Rig`; ``sample_times()`` and ``truth()`` are
-        used
-        when present). It is not closed here.
+        The rig (:class:`pneutune.control.rig.protocol.Rig`). It is not closed here.
     cfg_vec : (CFG_SIZE,) float64
         The packed controller config (:func:`pneutune.control.law.layout.pack`).
     reference : (N, 3) float64
@@ -211,7 +210,8 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     realtime : bool
         Pace the loop to wall time.
     record_truth : bool
-        Record ``rig.truth()`` (simulated rigs) as ``/sim/truth``.
+        Record ``rig.truth()`` as ``/sim/truth``; the rig must then be a
+        :class:`~pneutune.control.rig.protocol.SimulatedRig`.
     fail_safe : 4 floats
         Duties written on a fault.
     start_tolerance : float
@@ -224,13 +224,23 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     Returns
     -------
     LoopResult
+
+    Raises
+    ------
+    TypeError
+        ``record_truth`` for a rig that is not a ``SimulatedRig``.
     """
+    truth_fn: Callable[[], np.ndarray] | None = None
+    if record_truth:
+        if not isinstance(rig, SimulatedRig):
+            raise TypeError(f"record_truth needs a SimulatedRig (one with truth()), got "
+                            f"{type(rig).__name__}")
+        truth_fn = rig.truth
     ref = np.ascontiguousarray(reference, dtype=np.float64)
     n = ref.shape[0]
     Ts = float(rig.Ts)
     cfg = np.ascontiguousarray(cfg_vec, dtype=np.float64)
-    sample_times = getattr(rig, "sample_times", None)
-    truth_fn = getattr(rig, "truth", None) if record_truth else None
+    sample_times = rig.sample_times
     rec = Recording(n, Ts, truth=truth_fn is not None, reference=True, control_state=True)
     sensors_out, duties_out, truth_out = rec.sensors_, rec.duties_, rec.truth_
     state_out = rec.state_ if rec.state_ is not None else np.empty((n, LOG_INDEX.shape[0]))
@@ -296,7 +306,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             start = clock()
         try:
             s = rig.read()
-            stamps = sample_times() if sample_times is not None else None
+            stamps = sample_times()
         except RigIOError as exc:
             fault = Event(t, "error", "rig_io", f"reading the rig failed at t={t:.4f} s: {exc}")
             n_done = stop(k, t, fault, None)
@@ -455,7 +465,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         What to track. Its plant changes (payload, force steps) are the rig's business: a
         simulated rig must have been built with them (:func:`sim_rig_for`).
     rig : Rig
-        The rig; ``rig_metadata()`` is used when present (else the controller's rig block).
+        The rig; its ``rig_metadata()`` sets the reference's timing and centre and goes to the
+        log.
     supervisor : Supervisor, optional
         Default: one from the controller's ``limits`` (:meth:`SupervisorSettings.from_controller`).
     realtime, record_truth, fail_safe
@@ -473,8 +484,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     -------
     DeployResult
     """
-    meta_fn = getattr(rig, "rig_metadata", None)
-    rig_meta = dict(meta_fn()) if meta_fn is not None else controller.rig.model_dump()
+    rig_meta = dict(rig.rig_metadata())
     ref = scenario_reference(scenario, rig_meta)
     if duration is not None:
         ref = ref[:max(1, round(duration / float(rig_meta["Ts"])))]

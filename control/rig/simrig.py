@@ -1,8 +1,8 @@
-"""The rig interface and the simulated rig.
+"""The simulated rig in process.
 
-A rig is whatever the runtime talks to: it is sampled every ``Ts``, takes four duties and has a
-clock. :class:`SimRig` is the in-process simulated rig over the compiled plant
-(:mod:`pneutune.control.plant.dynamics`); a hardware driver implements the same three calls.
+:class:`SimRig` is the compiled plant (:mod:`pneutune.control.plant.dynamics`) behind the
+:class:`~pneutune.control.rig.protocol.SimulatedRig` protocol: the calls a hardware driver
+implements (:class:`~pneutune.control.rig.protocol.Rig`) plus ``truth()``.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import numpy as np
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_TS, PlantParams, pack_plant
+from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES
 
 
 class SimRig:
@@ -48,6 +49,7 @@ class SimRig:
         self.supply = float(self.params.p_s)
         self._sensors = np.zeros(4)
         self._truth = np.zeros(6)
+        self.closed = False
 
     @property
     def t(self) -> float:
@@ -59,6 +61,10 @@ class SimRig:
         plant.measure(self.params.vec, self.state, self.supply, self.rng.standard_normal(4),
                       self._sensors)
         return self._sensors.copy()
+
+    def sample_times(self) -> np.ndarray | None:
+        """Every channel is refreshed at every sample: ``[t, t, t, t]``."""
+        return np.full(4, self.t)
 
     def truth(self) -> np.ndarray:
         """True [v, a, F_friction, F_ext, mdot_a, mdot_b] at the current sample."""
@@ -76,3 +82,13 @@ class SimRig:
         plant.advance(self.params.vec, self.state, (self.k + 1) * self.Ts, self.supply,
                       self.params.force_steps)
         self.k += 1
+
+    def rig_metadata(self) -> dict[str, float | str]:
+        """The plant's ``rig`` block."""
+        return self.params.config.rig_metadata()
+
+    def close(self) -> None:
+        """Write the fail-safe duties (all closed); idempotent. The plant stays usable."""
+        if not self.closed:
+            self.write(np.asarray(FAIL_SAFE_DUTIES, dtype=np.float64))
+            self.closed = True

@@ -22,8 +22,8 @@ log the event on ``/rig/events`` and stop; ``deploy`` exits 3)
         negative) or above ``p_sensor_max`` (the transmitter's full scale).
     ``sensor_stale``
         no new value for more than ``limits.sensor_timeout_s``. "New" is decided by the rig
-        when it can: a rig with ``sample_times()`` (the time each channel was last refreshed,
-        :class:`pneutune.control.rig.pipe.RigDriver`) is stale on a channel when
+        when it can: a rig whose ``sample_times()`` is not None (the time each channel was last
+        refreshed, :class:`pneutune.control.rig.protocol.Rig`) is stale on a channel when
         ``t - sample_times()[i] > sensor_timeout_s``. A rig without it is judged on the values:
         a *pressure* channel whose reading repeats bit for bit for more than the timeout is
         stale (a working analog pressure channel has noise far above its quantum: with the

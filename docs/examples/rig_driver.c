@@ -1,0 +1,111 @@
+/* rig_driver.c: a complete rig driver speaking pneutune.rig/1 on stdin/stdout (docs/deploy.md).
+ *
+ *   gcc -std=c99 -O2 -Wall -o rig_driver rig_driver.c -lm
+ *   python -m pneutune.control.driver check ./rig_driver
+ *   deploy data/controller-paper.yaml --rig exec:./rig_driver --duration 2
+ *
+ * Its rig is a toy, not a cylinder: each chamber pressure relaxes toward the supply through its
+ * inlet valve and toward ambient through its outlet, at a rate proportional to the duty, and
+ * the piston moves at the speed that the net force drives through viscous friction, stopping at
+ * the stroke ends. It exists to show the protocol. A real driver replaces step() and the sensor
+ * values with its hardware: R reads the channels, W sets the PWM duties, A waits for the tick.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#if __BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__
+#error "pneutune.rig/1 is little-endian: swap the bytes of every number on this machine"
+#endif
+
+#define TS 0.004         /* sampling period [s] */
+#define P0 101325.0      /* ambient [Pa abs] */
+#define P_S 6.0e5        /* supply [Pa abs] */
+#define A_A 7.854e-3     /* piston area, chamber A [m^2] */
+#define A_B 7.54e-3      /* annulus area, chamber B [m^2] */
+#define X_MIN -0.0015    /* stroke [m] */
+#define X_MAX 0.0485
+#define RATE 30.0        /* pressure relaxation rate at full duty [1/s] */
+#define B_V 3500.0       /* viscous friction [N s/m] */
+
+static const char HELLO[] =
+    "{\"protocol\": \"pneutune.rig/1\", \"Ts\": 0.004, \"rig\": {"
+    "\"A_a\": 7.854e-3, \"A_b\": 7.54e-3, \"x_min\": -0.0015, \"x_max\": 0.0485, "
+    "\"V0a\": 5.036e-5, \"V0b\": 2.916e-5, \"p0\": 101325.0, \"p_s\": 6.0e5, "
+    "\"T0\": 283.15, \"n\": 1.2, \"R\": 287.0, \"Ts\": 0.004, \"pwm_hz\": 60.0, "
+    "\"pwm_update\": \"immediate\"}}";
+
+static long k;                                       /* sample index: t = k Ts */
+static double x = 0.0235, p_a = P0, p_b = P0;        /* at rest at mid-stroke */
+static double duty[4];                               /* a_in, a_out, b_in, b_out */
+
+static void put(const void *data, size_t n) {
+    if (n > 0 && fwrite(data, 1, n, stdout) != n) exit(1);
+}
+
+static void reply_ok(const void *body, size_t n) {
+    put("K", 1);
+    put(body, n);
+    fflush(stdout);
+}
+
+static void fail_safe(void) { memset(duty, 0, sizeof duty); } /* hardware: all coils off */
+
+static int reply_error(const char *message) {          /* E, close the valves, exit 1 */
+    uint32_t n = (uint32_t)strlen(message);
+    put("E", 1);
+    put(&n, sizeof n);
+    put(message, n);
+    fflush(stdout);
+    fail_safe();
+    return 1;
+}
+
+static void step(void) {                              /* the toy rig over one period */
+    const double h = TS / 8.0;
+    for (int i = 0; i < 8; i++) {
+        p_a += h * RATE * (duty[0] * (P_S - p_a) - duty[1] * (p_a - P0));
+        p_b += h * RATE * (duty[2] * (P_S - p_b) - duty[3] * (p_b - P0));
+        x += h * (p_a * A_A - p_b * A_B - P0 * (A_A - A_B)) / B_V;
+        x = fmin(fmax(x, X_MIN), X_MAX);
+    }
+}
+
+int main(void) {
+    int op;
+    while ((op = getchar()) != EOF) {
+        if (op == 'H') {
+            uint32_t n = sizeof HELLO - 1;
+            put("K", 1);
+            put(&n, sizeof n);
+            put(HELLO, n);
+            fflush(stdout);
+        } else if (op == 'R') {
+            double t = k * TS, r[9] = {t, x, p_a, p_b, P_S, t, t, t, t};
+            reply_ok(r, sizeof r);
+        } else if (op == 'W') {
+            double d[4];
+            if (fread(d, sizeof d, 1, stdin) != 1) break;  /* end of input */
+            for (int i = 0; i < 4; i++)
+                if (!(d[i] >= 0.0 && d[i] <= 1.0))          /* NaN fails this too */
+                    return reply_error("duties must be in [0, 1]");
+            memcpy(duty, d, sizeof d);
+            reply_ok("", 0);
+        } else if (op == 'A') {
+            step();
+            k++;
+            double t = k * TS;
+            reply_ok(&t, sizeof t);
+        } else if (op == 'C') {
+            fail_safe();
+            reply_ok("", 0);
+            return 0;
+        } else {
+            return reply_error("unknown request");
+        }
+    }
+    fail_safe();                                        /* the client is gone */
+    return 0;
+}
