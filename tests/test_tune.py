@@ -196,10 +196,11 @@ def _quick_objective(**kw: object) -> TuneObjective:
 def test_unstable_runs_prune_the_trial_never_raise(monkeypatch: pytest.MonkeyPatch) -> None:
     obj = _quick_objective()
 
-    def unstable(*_a: object, **_k: object) -> SimpleNamespace:
-        return SimpleNamespace(metrics=_metrics(status="unstable", E_p_mm=float("nan")))
+    def unstable(*_a: object, **_k: object) -> list[SimpleNamespace]:
+        return [SimpleNamespace(metrics=_metrics(status="unstable", E_p_mm=float("nan")))
+                for _ in obj.draws]
 
-    monkeypatch.setattr(obj, "simulate", unstable)
+    monkeypatch.setattr(obj, "run_scenario", unstable)
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
     study.optimize(obj, n_trials=2)
     for t in study.trials:

@@ -83,7 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=1, metavar="K",
                         help="worker processes on this host (default 1: reproducible)")
     parser.add_argument("--jobs", type=int, metavar="J",
-                        help="processes per worker that run a trial's plant draws in parallel "
+                        help="threads per worker that run a trial's plant draws in parallel "
                              "(default: the available CPUs with --workers 1, else 1; the "
                              "results do not depend on it)")
     parser.add_argument("--seed", type=int, default=1, metavar="S",

@@ -3,8 +3,9 @@
 For a candidate controller and every scenario s (default: the four Table-1 scenarios, then
 ``disturbance-0.5hz``) and plant draw d (:func:`pneutune.tune.plants.draw_plants`; the same
 draws for every trial -- common random numbers, so trials are compared on the same plants and
-the same sensor noise), one run of :func:`pneutune.control.sim.closed_loop.simulate_scenario` gives
-the paper's indices and the run's health. Its cost, dimensionless::
+the same sensor noise), one closed-loop run gives the paper's indices and the run's health
+(:func:`pneutune.control.sim.closed_loop.run_batch`: all draws of a scenario in one compiled
+call, in parallel over the draws). Its cost, dimensionless::
 
     c(s, d) = ½ (E_p / E_p* + E_rms / E_rms*)            tracking, * = the paper's Table 1
             + ½ · max(0, switches/s - 20) / 20           valve chattering (mode switches)
@@ -35,14 +36,12 @@ never as an exception. After each scenario the running mean is reported
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import multiprocessing
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import optuna
 
@@ -53,8 +52,10 @@ from pneutune.control.law.layout import pack
 from pneutune.control.sim.closed_loop import (
     ClosedLoopResult,
     Metrics,
-    scenario_plant,
-    simulate_scenario,
+    PreparedRun,
+    prepare_run,
+    run_batch,
+    run_prepared,
 )
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, Scenario, resolve_scenarios
 
@@ -309,9 +310,11 @@ class TuneObjective:
         Seed of the plant draws and the sensor noise (>= 0).
     settings : ObjectiveSettings, optional
     jobs : int
-        Processes that run the draws of a scenario in parallel (1: in this process). The runs
-        are seeded per draw, so the values do not depend on ``jobs``; a trial's wall time
-        drops by up to ``jobs``. Use as a context manager (or call :meth:`close`) to stop them.
+        Threads that run the draws of a scenario in parallel (numba's threads, one compiled call
+        per scenario: :func:`~pneutune.control.sim.closed_loop.run_batch`). Every run is
+        computed as if alone, so the values do not depend on ``jobs``; a trial's wall time
+        drops by up to ``min(jobs, draws)``. :meth:`close` (or the context manager) is kept for
+        callers that used the earlier process pool; it does nothing now.
     """
 
     def __init__(self, model: ModelConfig, seed: int,
@@ -329,47 +332,44 @@ class TuneObjective:
         if self.settings.duration is not None:
             scen = [dataclasses.replace(s, duration=self.settings.duration) for s in scen]
         self.scenarios: tuple[Scenario, ...] = tuple(scen)
-        # Each scenario's plant changes merged once per draw; the runs get the scenario without
-        # them (simulate_scenario would merge them again on every call otherwise).
-        self._plants = {(s.name, d.index): scenario_plant(d.plant, s)
-                        for s in self.scenarios for d in self.draws}
-        self._bare = {s.name: dataclasses.replace(s, plant_updates={}) for s in self.scenarios}
-        self._pool: Any = None
-        self._run_seconds: dict[tuple[str, int], float] = {}
-        if self.jobs > 1:
-            ctx = multiprocessing.get_context("spawn")
-            self._pool = ctx.Pool(min(self.jobs, len(self.draws)), initializer=_pool_init,
-                                  initargs=(model.to_dict(), self.seed, self.settings.to_dict()))
-
-    def _parallel_runs(self, cfg_json: str, scenario: str) -> list[Metrics]:
-        """The metrics of every draw of a scenario, run in the draw processes.
-
-        Runs are handed out longest first (by the last measured wall time of each run), so that
-        a slow draw (a stiff plant) does not start last and leave the other processes idle; the
-        results are put back in draw order, and do not depend on the order.
-        """
-        order = sorted(range(len(self.draws)),
-                       key=lambda i: -self._run_seconds.get((scenario, i), 0.0))
-        tasks = [(cfg_json, scenario, i) for i in order]
-        out: list[Metrics | None] = [None] * len(self.draws)
-        for i, (m, seconds) in zip(order, self._pool.map(_pool_run, tasks, chunksize=1),
-                                   strict=True):
-            out[i] = Metrics(**m)
-            self._run_seconds[(scenario, i)] = seconds
-        return out  # type: ignore[return-value]
+        # Everything that does not depend on the controller (each scenario's plant changes
+        # merged into each draw, the reference, the sensor noise of the draw's seed, the
+        # initial state) is prepared once; every trial runs on the same prepared runs.
+        self._runs: dict[str, tuple[PreparedRun, ...]] = {
+            s.name: tuple(prepare_run(s, d.plant) for d in self.draws) for s in self.scenarios}
 
     def close(self) -> None:
-        """Stop the draw processes (if any)."""
-        if self._pool is not None:
-            self._pool.close()
-            self._pool.join()
-            self._pool = None
+        """Nothing to release (the draws run in numba's threads); kept for compatibility."""
 
     def __enter__(self) -> TuneObjective:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def _threads(self) -> int:
+        """Threads to run a scenario's draws on."""
+        return max(1, min(self.jobs, len(self.draws), numba.config.NUMBA_NUM_THREADS))
+
+    def run_scenario(self, controller: ControllerConfig, scenario: Scenario,
+                     cfg_vec: np.ndarray | None = None,
+                     abort: bool = True) -> list[ClosedLoopResult]:
+        """All draws of a scenario, in one compiled call on :attr:`jobs` threads.
+
+        Returns
+        -------
+        list of ClosedLoopResult
+            In draw order.
+        """
+        runs = self._runs[scenario.name]
+        abort_error = self.settings.abort_error if abort else np.inf
+        previous = numba.get_num_threads()
+        numba.set_num_threads(self._threads())
+        try:
+            with numba.parallel_chunksize(1):  # hand the runs out one at a time
+                return run_batch(runs, controller, abort_error=abort_error, cfg_vec=cfg_vec)
+        finally:
+            numba.set_num_threads(previous)
 
     def simulate(self, controller: ControllerConfig, scenario: Scenario, draw: PlantDraw,
                  cfg_vec: np.ndarray | None = None, abort: bool = True) -> ClosedLoopResult:
@@ -379,10 +379,10 @@ class TuneObjective:
         -------
         ClosedLoopResult
         """
-        plant = self._plants[(scenario.name, draw.index)]
-        return simulate_scenario(controller, self._bare[scenario.name], plant, seed=None,
-                                 abort_error=self.settings.abort_error if abort else np.inf,
-                                 cfg_vec=cfg_vec)
+        run = self._runs[scenario.name][draw.index]
+        return run_prepared(run, controller,
+                            abort_error=self.settings.abort_error if abort else np.inf,
+                            cfg_vec=cfg_vec)
 
     def evaluate(self, controller: ControllerConfig,
                  report: Callable[[int, float], bool] | None = None,
@@ -406,16 +406,11 @@ class TuneObjective:
         vec = pack(controller)
         p0 = controller.rig.p0
         p_max = controller.limits.p_max
-        cfg_json = json.dumps(controller.to_dict()) if self._pool is not None else ""
         for step, sc in enumerate(self.scenarios):
-            if self._pool is not None:  # all draws of the scenario at once, results in order
-                metrics = self._parallel_runs(cfg_json, sc.name)
-            else:
-                metrics = None
+            results = self.run_scenario(controller, sc, vec)
             costs = []
             for d in self.draws:
-                m = metrics[d.index] if metrics is not None else \
-                    self.simulate(controller, sc, d, vec).metrics
+                m = results[d.index].metrics
                 rc = run_cost(m, sc, d.index, p0, p_max, st)
                 ev.runs[(sc.name, d.index)] = rc
                 if rc.cost is None:
@@ -469,33 +464,6 @@ class TuneObjective:
         if ev.value is None:  # pragma: no cover - evaluate() sets it whenever nothing failed
             raise RuntimeError(f"trial {trial.number}: evaluation ended without a value")
         return ev.value
-
-
-# Per-process state of the draw processes (``jobs`` > 1): the objective built once by the pool
-# initializer and the last controller (a trial sends the same one for all its runs).
-_POOL_STATE: dict[str, Any] = {}
-
-
-def _pool_init(model_data: dict[str, Any], seed: int, settings_data: dict[str, Any]) -> None:
-    """Initializer of a draw process: build the same objective (plants) as the parent."""
-    model = ModelConfig.model_validate(model_data)
-    _POOL_STATE["objective"] = TuneObjective(model, seed, ObjectiveSettings.from_dict(
-        settings_data))
-    _POOL_STATE["cfg_json"] = None
-
-
-def _pool_run(task: tuple[str, str, int]) -> tuple[dict[str, Any], float]:
-    """One run in a draw process: (controller JSON, scenario, draw) -> (metrics as a dict, wall
-    time of the run [s])."""
-    t0 = time.perf_counter()
-    cfg_json, scenario, draw = task
-    obj: TuneObjective = _POOL_STATE["objective"]
-    if _POOL_STATE["cfg_json"] != cfg_json:
-        cfg = ControllerConfig.model_validate_json(cfg_json)
-        _POOL_STATE.update(cfg_json=cfg_json, cfg=cfg, vec=pack(cfg))
-    sc = next(s for s in obj.scenarios if s.name == scenario)
-    res = obj.simulate(_POOL_STATE["cfg"], sc, obj.draws[draw], _POOL_STATE["vec"])
-    return res.metrics.as_dict(), time.perf_counter() - t0
 
 
 __all__ = ["DEFAULT_SCENARIOS", "FAIL_VALUE", "Evaluation", "ObjectiveSettings", "RunCost",

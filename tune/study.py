@@ -20,9 +20,10 @@ SQLite file) a ``tune`` that finds no other ``tune`` on the same file (an ``floc
 A study remembers the model's sha256, the seed, the objective settings and the search space
 (study user attributes); resuming with different ones is an error.
 
-Draw processes: ``--jobs J`` (default: the available CPUs with one worker, else 1) lets each
-worker run the plant draws of a scenario in J processes. A run's result does not depend on which
-process computes it, so this keeps a one-worker study reproducible while using the cores.
+Draw threads: ``--jobs J`` (default: the available CPUs with one worker, else 1) lets each
+worker run the plant draws of a scenario on J threads (one compiled, multi-threaded call per
+scenario). A run's result does not depend on which thread computes it, so this keeps a
+one-worker study reproducible while using the cores.
 
 Workers: ``--workers K`` starts K processes (``multiprocessing`` with the ``spawn`` start method)
 on the one study; K = 1 runs in the calling process. Worker i samples with a TPE sampler seeded
@@ -292,7 +293,7 @@ class StudySpec:
     model_sha256 : str
     settings : ObjectiveSettings
     jobs : int
-        Processes per worker running a trial's plant draws in parallel (the values do not
+        Threads per worker running a trial's plant draws in parallel (the values do not
         depend on it; :class:`~pneutune.tune.objective.TuneObjective`).
     extra_first : dict or None
         Parameters enqueued after the paper's as the second trial of a new study (the

@@ -13,10 +13,11 @@ balance (:func:`pneutune.control.plant.dynamics.rest_pressures`), runs and compu
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from pneutune.control.contracts.controller import ControllerConfig
 from pneutune.control.contracts.plant import PlantConfig
@@ -243,11 +244,243 @@ def scenario_plant(plant_cfg: PlantConfig, scenario: Scenario) -> PlantConfig:
     return plant_cfg.with_updates(scenario.plant_updates, source=f"scenario {scenario.name}")
 
 
+@dataclass(frozen=True)
+class PreparedRun:
+    """Everything of a closed-loop run that does not depend on the controller.
+
+    Built once by :func:`prepare_run`; :func:`run_prepared` and :func:`run_batch` run any number
+    of controllers on it (tuning scores every trial on the same prepared runs).
+
+    Attributes
+    ----------
+    scenario : Scenario
+        The scenario (its plant changes already merged into ``plant``).
+    plant : PlantConfig
+        The plant of the run.
+    seed : int
+        Sensor-noise seed.
+    Ts : float
+        Sampling period [s].
+    vec, force_steps : ndarray
+        Packed plant and force steps (:func:`~pneutune.control.plant.params.pack_plant`).
+    reference : ndarray, (N, 3)
+        ``[x_r, v_r, a_r]`` per sample.
+    noise : ndarray, (N, 4)
+        Standard-normal draws for the sensors.
+    p_s : ndarray, (N,)
+        Supply pressure per sample [Pa abs].
+    state0 : ndarray
+        Plant state at the start: at rest at ``reference[0]``, pressures in force balance.
+    p_a0, p_b0 : float
+        Those pressures [Pa abs].
+    """
+
+    scenario: Scenario
+    plant: PlantConfig
+    seed: int
+    Ts: float
+    vec: np.ndarray
+    force_steps: np.ndarray
+    reference: np.ndarray
+    noise: np.ndarray
+    p_s: np.ndarray
+    state0: np.ndarray
+    p_a0: float
+    p_b0: float
+
+    @property
+    def n(self) -> int:
+        """Samples in the run."""
+        return int(self.reference.shape[0])
+
+
+def prepare_run(scenario: Scenario, plant_cfg: PlantConfig | None = None,
+                seed: int | None = None) -> PreparedRun:
+    """The controller-independent part of a run (module docstring).
+
+    Parameters
+    ----------
+    scenario : Scenario
+        What to track; its plant changes (payload, force steps) are merged into the plant.
+    plant_cfg : PlantConfig, optional
+        The plant; default the paper's rig.
+    seed : int, optional
+        Sensor-noise seed; default the plant's ``sim.seed``.
+
+    Returns
+    -------
+    PreparedRun
+    """
+    base = plant_cfg if plant_cfg is not None else PlantConfig()
+    pcfg = scenario_plant(base, scenario)
+    pp = pack_plant(pcfg)
+    Ts = pcfg.rig.Ts
+    center = 0.5 * (pcfg.rig.x_min + pcfg.rig.x_max)
+    ref = scenario.reference_array(Ts, center)
+    n = ref.shape[0]
+    seed_used = pcfg.sim.seed if seed is None else int(seed)
+    noise = np.random.default_rng(seed_used).standard_normal((n, 4))
+    f0 = float(plant.external_force(pp.vec, pp.force_steps, 0.0))
+    pa0, pb0 = rest_pressures(pp.vec, f0)
+    s0 = plant.initial_state(pp.vec, float(ref[0, 0]), pa0, pb0)
+    for arr in (pp.vec, pp.force_steps, ref, noise, s0):
+        arr.setflags(write=False)  # shared by every run; the kernels copy what they change
+    p_s = np.full(n, pp.p_s)
+    p_s.setflags(write=False)
+    return PreparedRun(scenario, pcfg, seed_used, Ts, pp.vec, pp.force_steps, ref, noise, p_s,
+                       s0, float(pa0), float(pb0))
+
+
+def _status(code: int, n: int) -> tuple[int, str]:
+    """Samples done and status from a :func:`run_kernel` return code."""
+    if code >= 0:
+        return code, STATUS_OK
+    if -code <= n:
+        return -code, STATUS_UNSTABLE
+    return -code - n, STATUS_ABORTED
+
+
+def _result(run: PreparedRun, controller: ControllerConfig, code: int, sensors: np.ndarray,
+            duties: np.ndarray, cstate: np.ndarray,
+            truth: np.ndarray | None) -> ClosedLoopResult:
+    """Wrap a kernel's outputs, truncated at a stop, with their metrics."""
+    done, status = _status(code, run.n)
+    a = controller.adaptation
+    pcfg = run.plant
+    metrics = compute_metrics(run.scenario, run.Ts, run.reference, sensors[:done], duties[:done],
+                              cstate[:done], np.asarray(a.theta_min), np.asarray(a.theta_max),
+                              pcfg.rig.x_min, pcfg.rig.x_max, status)
+    return ClosedLoopResult(run.scenario, pcfg, controller, run.seed, run.Ts, run.reference,
+                            sensors[:done], duties[:done], cstate[:done],
+                            truth[:done] if truth is not None else None, metrics)
+
+
+def run_prepared(run: PreparedRun, controller: ControllerConfig, record_truth: bool = False,
+                 abort_error: float = np.inf,
+                 cfg_vec: np.ndarray | None = None) -> ClosedLoopResult:
+    """Run ``controller`` on a prepared run (:func:`prepare_run`).
+
+    Parameters
+    ----------
+    run : PreparedRun
+    controller : ControllerConfig
+    record_truth : bool
+        Keep ``/sim/truth``.
+    abort_error : float
+        Stop when |e1| exceeds this [m].
+    cfg_vec : ndarray, optional
+        Pre-packed ``controller``.
+
+    Returns
+    -------
+    ClosedLoopResult
+    """
+    n = run.n
+    cfg = pack(controller) if cfg_vec is None else cfg_vec
+    s = run.state0.copy()
+    cs = init_state(cfg, float(run.reference[0, 0]), run.p_a0, run.p_b0)
+    sensors = np.zeros((n, 4))
+    duties = np.zeros((n, 4))
+    cstate = np.zeros((n, LOG_INDEX.shape[0]))
+    truth = np.zeros((n if record_truth else 0, 6))
+    code = run_kernel(run.vec, s, run.force_steps, run.p_s, cfg, cs, run.reference, run.noise,
+                      run.Ts, LOG_INDEX, float(abort_error), sensors, duties, cstate, truth)
+    return _result(run, controller, code, sensors, duties, cstate,
+                   truth if record_truth else None)
+
+
+@njit(cache=True, parallel=True)
+def run_batch_kernel(order: np.ndarray, vecs: np.ndarray, states: np.ndarray,
+                     force_steps: np.ndarray, n_force: np.ndarray, p_s: np.ndarray,
+                     cfg: np.ndarray, cstates: np.ndarray, refs: np.ndarray, noise: np.ndarray,
+                     Ts: np.ndarray, log_index: np.ndarray, abort_error: float,
+                     sensors: np.ndarray, duties: np.ndarray, cstate: np.ndarray,
+                     codes: np.ndarray) -> None:
+    """:func:`run_kernel` on R runs of equal length, in parallel over the runs (``prange``).
+
+    Run r uses row r of every per-run array (``force_steps[r, :n_force[r]]``); ``order`` is the
+    order in which the runs are handed out (longest first balances the threads). Each run is
+    computed exactly as by :func:`run_kernel` alone, so the results do not depend on the
+    number of threads or on ``order``.
+    """
+    no_truth = np.zeros((0, 6))
+    for j in prange(order.shape[0]):
+        r = order[j]
+        codes[r] = run_kernel(vecs[r], states[r], force_steps[r, :n_force[r]], p_s[r], cfg,
+                              cstates[r], refs[r], noise[r], Ts[r], log_index, abort_error,
+                              sensors[r], duties[r], cstate[r], no_truth)
+
+
+def run_batch(runs: Sequence[PreparedRun], controller: ControllerConfig,
+              abort_error: float = np.inf, cfg_vec: np.ndarray | None = None,
+              order: Sequence[int] | None = None) -> list[ClosedLoopResult]:
+    """Run ``controller`` on several prepared runs in one compiled, multi-threaded call.
+
+    Parameters
+    ----------
+    runs : sequence of PreparedRun
+        Runs of the same number of samples (the draws of one scenario).
+    controller : ControllerConfig
+    abort_error : float
+        Stop a run when its |e1| exceeds this [m].
+    cfg_vec : ndarray, optional
+        Pre-packed ``controller``.
+    order : sequence of int, optional
+        Order in which to hand the runs to the threads (slowest first balances them);
+        default as given. The results are the same whatever the order.
+
+    Returns
+    -------
+    list of ClosedLoopResult
+        In the order of ``runs``; each equal, bit for bit, to :func:`run_prepared` on it.
+
+    Notes
+    -----
+    The threads are numba's (``numba.set_num_threads`` sets how many are used).
+    """
+    if not runs:
+        return []
+    n = runs[0].n
+    if any(r.n != n for r in runs):
+        raise ValueError(f"run_batch needs runs of equal length, got "
+                         f"{sorted({r.n for r in runs})} samples")
+    R = len(runs)
+    cfg = pack(controller) if cfg_vec is None else cfg_vec
+    vecs = np.stack([r.vec for r in runs])
+    states = np.stack([r.state0 for r in runs])
+    k_max = max(1, max(r.force_steps.shape[0] for r in runs))
+    fsteps = np.zeros((R, k_max, 2))
+    n_force = np.zeros(R, dtype=np.int64)
+    for i, r in enumerate(runs):
+        k = r.force_steps.shape[0]
+        fsteps[i, :k] = r.force_steps
+        n_force[i] = k
+    cstates = np.stack([init_state(cfg, float(r.reference[0, 0]), r.p_a0, r.p_b0)
+                        for r in runs])
+    p_s = np.stack([r.p_s for r in runs])
+    refs = np.stack([r.reference for r in runs])
+    noise = np.stack([r.noise for r in runs])
+    Ts = np.array([r.Ts for r in runs])
+    sensors = np.zeros((R, n, 4))
+    duties = np.zeros((R, n, 4))
+    cstate = np.zeros((R, n, LOG_INDEX.shape[0]))
+    codes = np.zeros(R, dtype=np.int64)
+    ord_ = np.arange(R, dtype=np.int64) if order is None else np.asarray(order, dtype=np.int64)
+    if sorted(ord_.tolist()) != list(range(R)):
+        raise ValueError(f"order must be a permutation of range({R}), got {list(ord_)}")
+    run_batch_kernel(ord_, vecs, states, fsteps, n_force, p_s, cfg, cstates, refs, noise, Ts,
+                     LOG_INDEX, float(abort_error), sensors, duties, cstate, codes)
+    return [_result(r, controller, int(codes[i]), sensors[i], duties[i], cstate[i], None)
+            for i, r in enumerate(runs)]
+
+
 def simulate_scenario(controller: ControllerConfig, scenario: Scenario,
                       plant_cfg: PlantConfig | None = None, seed: int | None = None,
                       record_truth: bool = False, abort_error: float = np.inf,
                       cfg_vec: np.ndarray | None = None) -> ClosedLoopResult:
     """Run one scenario in closed loop on the simulated rig.
+
+    :func:`prepare_run` then :func:`run_prepared`.
 
     Parameters
     ----------
@@ -270,38 +503,5 @@ def simulate_scenario(controller: ControllerConfig, scenario: Scenario,
     -------
     ClosedLoopResult
     """
-    base = plant_cfg if plant_cfg is not None else PlantConfig()
-    pcfg = scenario_plant(base, scenario)
-    pp = pack_plant(pcfg)
-    Ts = pcfg.rig.Ts
-    center = 0.5 * (pcfg.rig.x_min + pcfg.rig.x_max)
-    ref = scenario.reference_array(Ts, center)
-    n = ref.shape[0]
-    rng = np.random.default_rng(pcfg.sim.seed if seed is None else seed)
-    noise = rng.standard_normal((n, 4))
-    f0 = float(plant.external_force(pp.vec, pp.force_steps, 0.0))
-    pa0, pb0 = rest_pressures(pp.vec, f0)
-    s = plant.initial_state(pp.vec, float(ref[0, 0]), pa0, pb0)
-    cfg = pack(controller) if cfg_vec is None else cfg_vec
-    cs = init_state(cfg, float(ref[0, 0]), pa0, pb0)
-    sensors = np.zeros((n, 4))
-    duties = np.zeros((n, 4))
-    cstate = np.zeros((n, LOG_INDEX.shape[0]))
-    truth = np.zeros((n if record_truth else 0, 6))
-    p_s = np.full(n, pp.p_s)
-    code = run_kernel(pp.vec, s, pp.force_steps, p_s, cfg, cs, ref, noise, Ts, LOG_INDEX,
-                      float(abort_error), sensors, duties, cstate, truth)
-    if code >= 0:
-        done, status = code, STATUS_OK
-    elif -code <= n:
-        done, status = -code, STATUS_UNSTABLE
-    else:
-        done, status = -code - n, STATUS_ABORTED
-    a = controller.adaptation
-    metrics = compute_metrics(scenario, Ts, ref, sensors[:done], duties[:done], cstate[:done],
-                              np.asarray(a.theta_min), np.asarray(a.theta_max),
-                              pcfg.rig.x_min, pcfg.rig.x_max, status)
-    seed_used = pcfg.sim.seed if seed is None else seed
-    return ClosedLoopResult(scenario, pcfg, controller, seed_used, Ts, ref, sensors[:done],
-                            duties[:done], cstate[:done], truth[:done] if record_truth else None,
-                            metrics)
+    return run_prepared(prepare_run(scenario, plant_cfg, seed), controller,
+                        record_truth=record_truth, abort_error=abort_error, cfg_vec=cfg_vec)
