@@ -59,9 +59,10 @@ Rigs (--rig):
                       seed first (a simulated rig needs them, a hardware driver ignores them),
                       then CMD is split like a shell would (no shell runs). Its hello gives the
                       rig block (Ts and pwm_hz must equal the controller's); a driver that is
-                      not there, dies at once or sends a bad hello is bad input (exit 2, with
-                      the driver's last stderr lines). A reply later than 2 s (10 s for the
-                      hello) or an E reply during the run is a rig_io fault (exit 3).
+                      not there, dies at once, sends a bad hello or none within 10 s is bad
+                      input (exit 2, with the driver's last stderr lines). A reply later than
+                      2 s or an E reply during the run, or a driver that fails to start after
+                      an earlier scenario ran, is a rig_io fault (exit 3).
                       `python -m pneutune.control.driver check "CMD ARGS"` checks a driver.
 
 Safety supervisor (docs/deploy.md): a sensor reading NaN, stale or out of range, the supply
@@ -164,9 +165,9 @@ def _timing_line(name: str, timing: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``deploy``; returns the exit status (0, 3; 2 via PneutuneError)."""
-    from pneutune.control.rig.pipe import ExecRig, PipeRig, exec_command
+    from pneutune.control.rig.pipe import ExecRig, PipeRig, RigIOError, exec_command
     from pneutune.control.rig.runtime import run_scenario, sim_rig_for
-    from pneutune.control.rig.supervisor import Supervisor, SupervisorSettings
+    from pneutune.control.rig.supervisor import Event, Supervisor, SupervisorSettings
     from pneutune.control.sim.closed_loop import scenario_plant
     from pneutune.control.sim.scenarios import resolve_scenarios
 
@@ -226,12 +227,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         pcfg: PlantConfig | None
         if kind == "sim":
             rig, pcfg, _ = sim_rig_for(sc, plant_cfg, seed)
-        elif command is not None:  # the driver's rig is what it says it is: no truth, no plant
-            pcfg = None
-            rig = ExecRig(exec_command(command, sc.name, seed))
         else:
-            pcfg = scenario_plant(plant_cfg, sc)
-            rig = PipeRig(plant=plant_path, scenario=sc.name, seed=seed)
+            try:
+                if command is not None:  # the driver's rig is what it says it is: no truth
+                    pcfg = None
+                    rig = ExecRig(exec_command(command, sc.name, seed))
+                else:
+                    pcfg = scenario_plant(plant_cfg, sc)
+                    rig = PipeRig(plant=plant_path, scenario=sc.name, seed=seed)
+            except RigIOError as exc:
+                if not results:  # nothing ran: bad input (exit 2, the driver's stderr tail)
+                    raise
+                # a driver that ran an earlier scenario fails to start for this one: the runs
+                # so far stand (their logs are written), this one is a rig_io fault at t = 0
+                fault = Event(0.0, "error", "rig_io", f"the rig did not start: {exc}")
+                faults.append({"scenario": sc.name, **fault.as_dict()})
+                break
         try:
             check_rig_compatible(controller, rig.rig_metadata(), args.controller,
                                  f"rig {kind}")
@@ -280,8 +291,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             info(f"not run after the fault: {', '.join(not_run)}")
     if faults:
         f = faults[0]
+        log = results[f["scenario"]]["log"] if f["scenario"] in results else "none written"
         info(f"error: fault {f['code']} in scenario {f['scenario']} at t={f['t']:.4f} s: "
-             f"{f['message']} (log: {results[f['scenario']]['log']})")
+             f"{f['message']} (log: {log})")
         return EXIT_FAULT
     return 0
 

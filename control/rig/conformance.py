@@ -27,6 +27,12 @@ when all pass and 1 otherwise. The checks, in :data:`CHECKS` order:
     is still open.
 ``latency``
     No reply of any session came later than the timeout (the hello: the startup timeout).
+    A late reply is waited for up to :data:`PATIENCE` timeouts (the hello:
+    :data:`HELLO_PATIENCE` startup timeouts), so that the report can say how late it was.
+
+The first session runs ``hello``, ``sequence`` and ``clock``. When it gets no usable hello
+(no reply, not JSON, another protocol, no ``Ts``), the checks that need a further session are
+reported as not run (failed) rather than waiting for five more hellos that will not come.
 
 What the pipe cannot show is not checked: that the valves really close after ``E``, ``C`` or
 end of input is the driver's duty (and its watchdog's); check it on the rig with air on.
@@ -78,6 +84,8 @@ BAD_DUTIES: tuple[tuple[str, tuple[float, float, float, float]], ...] = (
 UNKNOWN_OPCODE = b"Z"
 #: A late reply is waited for up to this many timeouts before the session is given up.
 PATIENCE = 5.0
+#: A late hello is waited for up to this many startup timeouts.
+HELLO_PATIENCE = 2.0
 _CLOSED = FRAME_DUTIES.pack(0.0, 0.0, 0.0, 0.0)
 
 
@@ -166,7 +174,7 @@ class _Latency:
 
 class _Session:
     """One fresh driver process: every reply timed, a late one waited for up to PATIENCE
-    timeouts."""
+    timeouts (the hello: HELLO_PATIENCE startup timeouts)."""
 
     def __init__(self, command: Sequence[str], name: str, latency: _Latency) -> None:
         self.name = name
@@ -179,7 +187,7 @@ class _Session:
         self.driver.send(data)
         start = time.monotonic()
         try:
-            return self.driver.reply(size, PATIENCE * limit)
+            return self.driver.reply(size, (HELLO_PATIENCE if hello else PATIENCE) * limit)
         finally:
             lat.record(time.monotonic() - start, f"{what} ({self.name} session)", hello)
 
@@ -211,14 +219,16 @@ def _start(command: Sequence[str], name: str, latency: _Latency) -> tuple[_Sessi
     return s, Ts
 
 
-def _main_session(s: _Session, samples: int) -> tuple[CheckResult, CheckResult, CheckResult]:
-    """hello, sequence and clock, in one session."""
+def _main_session(s: _Session,
+                  samples: int) -> tuple[bool, CheckResult, CheckResult, CheckResult]:
+    """hello, sequence and clock, in one session; first whether a usable hello came (one
+    that gives Ts and a rig object, complete or not)."""
     try:
         try:
             Ts, rig = s.hello()
         except RigIOError as exc:
-            return (CheckResult("hello", False, str(exc)), _not_run("sequence", "no hello"),
-                    _not_run("clock", "no hello"))
+            return (False, CheckResult("hello", False, str(exc)),
+                    _not_run("sequence", "no hello"), _not_run("clock", "no hello"))
         try:
             check_rig_block(rig, Ts)
             hello = CheckResult("hello", True, f"{PROTOCOL}, Ts = {Ts:g} s, a complete rig "
@@ -258,7 +268,7 @@ def _main_session(s: _Session, samples: int) -> tuple[CheckResult, CheckResult, 
         else:
             clock = CheckResult("clock", True, f"t = k Ts at every R and A of {done} samples "
                                                f"(largest |t - k Ts| = {worst:.3g} s)")
-        return hello, sequence, clock
+        return True, hello, sequence, clock
     finally:
         s.end()
 
@@ -367,13 +377,20 @@ def check_driver(command: Sequence[str], samples: int = DEFAULT_SAMPLES,
         results = (CheckResult("hello", False, str(exc)),
                    *(_not_run(name, "the driver cannot be started") for name in CHECKS[1:]))
         return ConformanceReport(tuple(command), results, samples, float(timeout))
-    hello, sequence, clock = _main_session(main, samples)
-    bad_duty, opcode = _refusals(command, latency)
-    end_of_input = _ending(command, "EOF", latency)
-    close = _ending(command, "C", latency)
+    greeted, hello, sequence, clock = _main_session(main, samples)
+    if greeted:
+        bad_duty, opcode = _refusals(command, latency)
+        end_of_input = _ending(command, "EOF", latency)
+        close = _ending(command, "C", latency)
+    else:  # every other session starts with a hello too: do not wait for it five more times
+        bad_duty, opcode, end_of_input, close = (
+            _not_run(name, "no usable hello in the first session")
+            for name in ("bad_duty", "unknown_opcode", "end_of_input", "close"))
     if latency.late:
         lat = CheckResult("latency", False, "; ".join(latency.late[:3]) + (
             f" (and {len(latency.late) - 3} more)" if len(latency.late) > 3 else ""))
+    elif latency.replies == 0:
+        lat = _not_run("latency", "no reply after a hello to time")
     else:
         lat = CheckResult("latency", True,
                           f"every reply within {timeout:g} s ({latency.replies} replies, "
@@ -443,5 +460,6 @@ def check_main(args: argparse.Namespace) -> int:
     return 0 if report.passed else 1
 
 
-__all__ = ["BAD_DUTIES", "CHECKS", "CLOCK_RTOL", "DEFAULT_SAMPLES", "UNKNOWN_OPCODE",
+__all__ = ["BAD_DUTIES", "CHECKS", "CLOCK_RTOL", "DEFAULT_SAMPLES", "HELLO_PATIENCE", "PATIENCE",
+           "UNKNOWN_OPCODE",
            "CheckResult", "ConformanceReport", "add_check_parser", "check_driver", "check_main"]

@@ -10,7 +10,9 @@
  * the stroke ends. It exists to show the protocol. A real driver replaces step() and the sensor
  * values with its hardware: R reads the channels, W sets the PWM duties, A waits for the tick.
  */
+#define _POSIX_C_SOURCE 200809L /* signal(SIGPIPE, ...) */
 #include <math.h>
+#include <signal.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -41,25 +43,31 @@ static long k;                                       /* sample index: t = k Ts *
 static double x = 0.0235, p_a = P0, p_b = P0;        /* at rest at mid-stroke */
 static double duty[4];                               /* a_in, a_out, b_in, b_out */
 
+static void fail_safe(void) { memset(duty, 0, sizeof duty); } /* hardware: all coils off */
+
+static void gone(void) { fail_safe(); exit(1); }     /* a failed write: the client is gone */
+
 static void put(const void *data, size_t n) {
-    if (n > 0 && fwrite(data, 1, n, stdout) != n) exit(1);
+    if (n > 0 && fwrite(data, 1, n, stdout) != n) gone();
+}
+
+static void flush(void) {
+    if (fflush(stdout) != 0) gone();
 }
 
 static void reply_ok(const void *body, size_t n) {
     put("K", 1);
     put(body, n);
-    fflush(stdout);
+    flush();
 }
 
-static void fail_safe(void) { memset(duty, 0, sizeof duty); } /* hardware: all coils off */
-
-static int reply_error(const char *message) {          /* E, close the valves, exit 1 */
+static int reply_error(const char *message) {          /* close the valves, E, exit 1 */
     uint32_t n = (uint32_t)strlen(message);
+    fail_safe();
     put("E", 1);
     put(&n, sizeof n);
     put(message, n);
-    fflush(stdout);
-    fail_safe();
+    flush();
     return 1;
 }
 
@@ -75,13 +83,14 @@ static void step(void) {                              /* the toy rig over one pe
 
 int main(void) {
     int op;
+    signal(SIGPIPE, SIG_IGN);        /* a vanished client is a write error (put), not a kill */
     while ((op = getchar()) != EOF) {
         if (op == 'H') {
             uint32_t n = sizeof HELLO - 1;
             put("K", 1);
             put(&n, sizeof n);
             put(HELLO, n);
-            fflush(stdout);
+            flush();
         } else if (op == 'R') {
             double t = k * TS, r[9] = {t, x, p_a, p_b, P_S, t, t, t, t};
             reply_ok(r, sizeof r);
