@@ -14,7 +14,7 @@ from pneutune.control.contracts.controller import ControllerConfig, load_control
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune import TuneSettings, tune
-from pneutune.tune.objective import ObjectiveSettings, TuneError
+from pneutune.tune.objective import ObjectiveSettings, TuneError, TuneObjective
 
 QUICK = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=4.0)
 
@@ -63,3 +63,30 @@ def test_the_pid_baseline_is_tuned_with_the_same_objective(tmp_path: Path) -> No
     first = result.study.trials[0].params
     assert first["pid.kp"] == 3.0e6 and first["pid.ki"] == 1.0e5
     assert result.summary()["study"].endswith("-pid")
+
+
+def test_the_report_scores_both_controllers_on_held_out_draws(tmp_path: Path) -> None:
+    """Issue 12, generalisation: report.md and --json score the tuned and the paper's gains on
+    draws the study never saw (seed + HELDOUT_SEED_OFFSET). With 4 draws the Latin-hypercube
+    plant (draw 3) is a new plant; the overfit figure is the ratio of ratios of the four
+    objective values (recomputed here from the evaluations, to 1e-12)."""
+    from pneutune.tune.report import HELDOUT_SEED_OFFSET
+
+    model = model_from_plant(PlantConfig())
+    objective = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=4, duration=4.0)
+    result = tune(model, TuneSettings(trials=2, out=tmp_path, jobs=1, seed=5,
+                                      objective=objective))
+    comp = result.comparison
+    held = comp.heldout
+    assert held is not None and held.seed == 5 + HELDOUT_SEED_OFFSET
+    study_draws = TuneObjective(model, 5, objective).draws
+    assert held.objective.draws[3].values != study_draws[3].values  # a new plant
+    assert held.objective.draws[0].values == study_draws[0].values  # the same nominal plant
+    assert held.objective.draws[0].noise_seed != study_draws[0].noise_seed  # new noise
+    summary = result.summary()["heldout"]
+    ratio = ((held.tuned.value / comp.tuned.value) / (held.paper.value / comp.paper.value) - 1.0)
+    assert summary["overfit"] == pytest.approx(ratio, rel=1e-12)
+    assert set(summary["mean_E_p_mm"]["tuned"]) == {"sine-0.5hz"}
+    text = Path(result.paths["report"]).read_text()
+    assert "## Generalisation: held-out plants and noise" in text
+    assert f"seed {5 + HELDOUT_SEED_OFFSET}" in text

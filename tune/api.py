@@ -295,7 +295,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
                       feas.notes())
     tuned = controller_from_params(model_cfg, best.params, prov)
     paper = load_controller(PAPER_CONTROLLER)
-    objective = TuneObjective(model_cfg, settings.seed, objective_settings)
+    objective = TuneObjective(model_cfg, settings.seed, objective_settings, jobs=jobs)
     comp = compare(objective, tuned, paper)
     paths = _write(out, name, model_sha, study_name, best, tuned, objective, comp, settings)
     report_info = {

@@ -28,6 +28,48 @@ from pneutune.control.contracts.controller import ControllerConfig
 from .objective import FAIL_VALUE, Evaluation, TuneObjective
 from .space import params_from_controller
 
+#: The held-out plants and noise are drawn with ``seed + HELDOUT_SEED_OFFSET`` (:func:`compare`).
+HELDOUT_SEED_OFFSET = 1_000_003
+
+
+@dataclass
+class HeldOut:
+    """Both controllers on plant draws and sensor noise the study never saw.
+
+    Attributes
+    ----------
+    seed : int
+        Seed of the held-out draws (the study's seed + :data:`HELDOUT_SEED_OFFSET`).
+    objective : TuneObjective
+        The objective on the held-out draws (same scenarios, settings and θ box).
+    tuned, paper : Evaluation
+    """
+
+    seed: int
+    objective: TuneObjective
+    tuned: Evaluation
+    paper: Evaluation
+
+    def mean_e_p(self, which: str) -> dict[str, float]:
+        """Per scenario, the mean E_p [mm] of ``which`` over the held-out draws."""
+        ev = self.tuned if which == "tuned" else self.paper
+        acc: dict[str, list[float]] = {}
+        for (s, _), rc in ev.runs.items():
+            acc.setdefault(s, []).append(rc.metrics.E_p_mm)
+        return {s: float(np.mean(v)) for s, v in acc.items()}
+
+    def overfit(self, study_tuned: float | None, study_paper: float | None) -> float | None:
+        """How much worse the tuned controller does on held-out draws than on the study's,
+        relative to how much worse the paper's does (which was not fitted to either set):
+        ``(tuned_heldout / tuned_study) / (paper_heldout / paper_study) - 1``. 0: no
+        overfitting; 0.1: the tuned controller's advantage shrinks by 10 % on new plants.
+        None when a value is missing."""
+        vals = (self.tuned.value, study_tuned, self.paper.value, study_paper)
+        if any(v is None or not np.isfinite(v) or v <= 0.0 for v in vals):
+            return None
+        th, ts, ph, ps = vals  # type: ignore[misc]
+        return float((th / ts) / (ph / ps) - 1.0)
+
 
 @dataclass
 class Comparison:
@@ -38,11 +80,14 @@ class Comparison:
     tuned, paper : Evaluation
     worst_draw : int
         Index of the draw where the tuned controller does worst.
+    heldout : HeldOut or None
+        Both controllers on held-out draws (:func:`compare` with ``heldout=True``).
     """
 
     tuned: Evaluation
     paper: Evaluation
     worst_draw: int
+    heldout: HeldOut | None = None
 
     def table(self, which: str, draw: int) -> dict[str, dict[str, Any]]:
         """Per scenario, the metrics of ``which`` (``tuned`` or ``paper``) on ``draw``."""
@@ -51,7 +96,15 @@ class Comparison:
 
     def summary(self) -> dict[str, Any]:
         """Plain data for ``--json``."""
+        held: dict[str, Any] | None = None
+        if self.heldout is not None:
+            h = self.heldout
+            held = {"seed": h.seed,
+                    "objective": {"tuned": h.tuned.value, "paper": h.paper.value},
+                    "mean_E_p_mm": {"tuned": h.mean_e_p("tuned"), "paper": h.mean_e_p("paper")},
+                    "overfit": h.overfit(self.tuned.value, self.paper.value)}
         return {
+            "heldout": held,
             "objective": {"tuned": self.tuned.value, "paper": self.paper.value},
             "worst_draw": self.worst_draw,
             "nominal": {"tuned": self.table("tuned", 0), "paper": self.table("paper", 0)},
@@ -61,13 +114,65 @@ class Comparison:
 
 
 def compare(objective: TuneObjective, tuned: ControllerConfig,
-            paper: ControllerConfig) -> Comparison:
-    """Score both controllers on every scenario and draw (no early stop)."""
+            paper: ControllerConfig, heldout: bool = True) -> Comparison:
+    """Score both controllers on every scenario and draw (no early stop).
+
+    Parameters
+    ----------
+    objective : TuneObjective
+        The study's objective (its draws and noise).
+    tuned, paper : ControllerConfig
+    heldout : bool
+        Also score both on held-out draws: a :class:`TuneObjective` with the same model,
+        settings and θ box but the seed ``objective.seed + HELDOUT_SEED_OFFSET``, so new sensor
+        noise on every draw and new Latin-hypercube plants (the nominal plant and the two
+        corners are the same plants, with new noise).
+
+    Returns
+    -------
+    Comparison
+    """
     ev_t = objective.evaluate(tuned, stop_on_failure=False)
     ev_p = objective.evaluate(paper, stop_on_failure=False)
     totals = ev_t.draw_totals()
     worst = max(totals, key=lambda d: totals[d]) if totals else 0
-    return Comparison(ev_t, ev_p, worst)
+    held = None
+    if heldout:
+        seed = objective.seed + HELDOUT_SEED_OFFSET
+        obj_h = TuneObjective(objective.model, seed, objective.settings, jobs=objective.jobs)
+        held = HeldOut(seed, obj_h, obj_h.evaluate(tuned, stop_on_failure=False),
+                       obj_h.evaluate(paper, stop_on_failure=False))
+    return Comparison(ev_t, ev_p, worst, held)
+
+
+def _heldout(comp: Comparison) -> list[str]:
+    """The generalisation section of report.md (nothing without held-out draws)."""
+    h = comp.heldout
+    if h is None:
+        return []
+    over = h.overfit(comp.tuned.value, comp.paper.value)
+    t_e, p_e = h.mean_e_p("tuned"), h.mean_e_p("paper")
+    lines = ["## Generalisation: held-out plants and noise", "",
+             f"Both controllers on {len(h.objective.draws)} draws the study never saw (seed "
+             f"{h.seed}: new sensor noise on every draw"
+             + ("; new Latin-hypercube plants, while the nominal plant and the two corners are "
+                "the same plants" if len(h.objective.draws) > 3 else
+                "; with 3 draws or fewer these are the same plants (nominal and corners)")
+             + ").", "",
+             "| | study draws | held-out draws |", "|---|---|---|",
+             f"| objective, tuned | {_fmt(comp.tuned.value, 4)} | {_fmt(h.tuned.value, 4)} |",
+             f"| objective, paper | {_fmt(comp.paper.value, 4)} | {_fmt(h.paper.value, 4)} |",
+             "", "| scenario | mean E_p held-out, paper [mm] | tuned [mm] |", "|---|---|---|"]
+    lines += [f"| {s} | {_fmt(p_e.get(s))} | {_fmt(t_e.get(s))} |" for s in t_e]
+    if over is None:
+        verdict = "not computed (a run failed)"
+    else:
+        verdict = f"{over:+.1%} (" + ("the advantage holds on new plants" if over <= 0.1 else
+                                      "the tuned gains fit the study's draws noticeably better "
+                                      "than new ones") + ")."
+    lines += ["", "Overfitting to the study's draws, (tuned held-out / tuned study) / "
+              "(paper held-out / paper study) - 1: " + verdict, ""]
+    return lines
 
 
 def plot_history(study: optuna.Study, path: Path) -> Path:
@@ -235,9 +340,10 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         out += ["", f"The paper's gains fail a run: {comp.paper.failure}."]
     if comp.tuned.failure:
         out += ["", f"The tuned gains fail a run: {comp.tuned.failure}."]
+    out += ["", *_heldout(comp)]
     tp = params_from_controller(tuned)
     pp = params_from_controller(paper)
-    out += ["", "## Parameters", "",
+    out += ["## Parameters", "",
             "| parameter | unit | range | paper | tuned | importance |",
             "|---|---|---|---|---|---|"]
     for p in objective.space.params:
@@ -294,5 +400,5 @@ def write_report(out_dir: str | os.PathLike[str], objective: TuneObjective,
     return path
 
 
-__all__ = ["Comparison", "compare", "importances", "plot_history",
+__all__ = ["HELDOUT_SEED_OFFSET", "Comparison", "HeldOut", "compare", "importances", "plot_history",
            "plot_importance", "render", "write_report"]
