@@ -56,7 +56,8 @@ bench: $(STAMP)
 
 ## data: regenerate the shipped, seeded identification-run log data/run.mcap
 data: $(STAMP)
-	$(BIN)/simulate --experiment identification --seed $(SEED) --out data/run.mcap
+	$(BIN)/simulate --experiment identification --seed $(SEED) --compression-level 19 \
+		--out data/run.mcap
 
 clean-venv:
 	rm -rf $(VENV)

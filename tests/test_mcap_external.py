@@ -139,7 +139,7 @@ def _run(command: list[str], path: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*command, str(path)], capture_output=True, text=True, timeout=60)
 
 
-def _write_log(path: Path) -> tuple[dict[str, int], dict[str, dict]]:
+def _write_log(path: Path, indexed: bool = True) -> tuple[dict[str, int], dict[str, dict]]:
     """A log with every topic over several chunks; returns counts and first messages."""
     n = 2000
     rng = np.random.default_rng(17)
@@ -155,7 +155,7 @@ def _write_log(path: Path) -> tuple[dict[str, int], dict[str, dict]]:
     truth = {k: rng.normal(size=n) for k in ("v", "a", "F_friction", "F_ext", "mdot_a", "mdot_b")}
     segment = {"label": "chirp-1", "kind": "chirp", "params": {"f0_hz": 0.1, "f1_hz": 5.0}}
     event = {"level": "warning", "code": "x_limit", "message": "near the stroke end"}
-    with RunLogWriter(path, RIG, {"seed": "17"}, chunk_size=64 * 1024) as log:
+    with RunLogWriter(path, RIG, {"seed": "17"}, chunk_size=64 * 1024, indexed=indexed) as log:
         log.write("/experiment/segment", 0.0, segment)
         log.write_many("/rig/sensors", t, sensors)
         log.write_many("/rig/valves", t, valves)
@@ -197,6 +197,21 @@ def test_typescript_reader_reads_every_message(tmp_path: Path, mcap_node: list[s
         assert out["first"][topic]["value"] == expected, topic
     assert out["first"]["/rig/sensors"]["logTime"] == "0"
     assert out["first"]["/rig/events"]["logTime"] == "1500000000"
+
+
+def test_typescript_reader_reads_an_unindexed_log(tmp_path: Path, mcap_node: list[str]) -> None:
+    """``indexed=False`` (what ``simulate --experiment`` writes): the stream reader reads every
+    message with CRCs; the summary lists no chunk index, so the indexed reader yields nothing
+    and raises nothing, which is how Foxglove knows to read the file linearly."""
+    path = tmp_path / "run.mcap"
+    counts, _ = _write_log(path, indexed=False)
+    done = _run(mcap_node, path)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["streamCounts"] == counts
+    assert out["statistics"] == counts
+    assert out["chunks"] == 0 and out["counts"] == {}
+    assert out["metadata"]["run"]["seed"] == "17"
 
 
 def test_typescript_reader_rejects_a_cut_file(tmp_path: Path, mcap_node: list[str]) -> None:

@@ -24,7 +24,9 @@ Integrity
     footer, only summary records after it) and that every message's channel and every
     channel's schema is declared. A file that was cut short or damaged raises
     :class:`~pneutune.control.errors.TruncatedLogError` rather than yielding partial data; no
-    exception of the ``mcap``, ``zstandard`` or ``struct`` modules escapes.
+    exception of the ``mcap``, ``zstandard`` or ``struct`` modules escapes. Message-index
+    records are skipped unparsed (:class:`_RecordReader`; their layout is checked and the CRC
+    covers them): parsed by the package they cost about 1 s on a log of a million messages.
 
     One part stays hand-written because it pays: the records inside a decompressed chunk
     are split here (:func:`_scan_chunk`), and a message becomes three list entries instead of
@@ -214,6 +216,36 @@ class _StrictBytes(io.BytesIO):
         return out
 
 
+_MESSAGE_INDEX_HEAD = struct.Struct("<HI")  # channel id, byte length of the entries
+_MESSAGE_INDEX_ENTRY = 16  # log time, offset (uint64 each)
+
+
+class _RecordReader(StreamReader):
+    """The ``mcap`` package's StreamReader, except that a MessageIndex record is not parsed.
+
+    The package reads a message index entry by entry, four Python calls per message, which
+    made the StreamReader switch cost about 1 s more on ``data/run.mcap`` as it was (956k
+    messages, one index entry each; benchmarks/identify_speed.py, docs/architecture.md). The
+    run log does not use message indexes, so their body is read in one piece (the data-section
+    CRC still covers it) and only its layout is checked: a channel id, an entry length that is
+    a whole number of 16-byte entries and fits in the record. If a later ``mcap`` release
+    renames the hook ``_read_record``, the package parses the indexes again: slower, still
+    correct.
+    """
+
+    def _read_record(self, opcode: int, length: int) -> Any:
+        if opcode != Opcode.MESSAGE_INDEX:
+            return super()._read_record(opcode, length)
+        body = self._stream.read(length)  # the CRC-computing stream: the data CRC covers it
+        if length < _MESSAGE_INDEX_HEAD.size:
+            raise _Corrupt("message index record too short")
+        _cid, entries = _MESSAGE_INDEX_HEAD.unpack_from(body)
+        if entries % _MESSAGE_INDEX_ENTRY or _MESSAGE_INDEX_HEAD.size + entries > len(body):
+            raise _Corrupt(f"message index record holds {entries} bytes of entries in a "
+                           f"{length}-byte record (16 bytes per entry)")
+        return None
+
+
 def _read_record(record_type: Any, body: bytes) -> Any:
     return record_type.read(ReadDataStream(_StrictBytes(body)))
 
@@ -302,7 +334,8 @@ def _scan(data: bytes) -> _Scan:
     scan = _Scan()
     stream = _FileBytes(data)
     # no record size limit: a length beyond the end of the file is a short read (cut short)
-    reader = StreamReader(stream, emit_chunks=True, validate_crcs=True, record_size_limit=None)
+    reader = _RecordReader(stream, emit_chunks=True, validate_crcs=True,
+                           record_size_limit=None)
     footer: Footer | None = None
     in_summary = False
     first = True

@@ -81,7 +81,8 @@ class Recording:
                 setattr(self, name, arr[:n])
 
     def save(self, path: str | os.PathLike[str], rig: Mapping[str, float | str],
-             run: Mapping[str, str]) -> None:
+             run: Mapping[str, str], *, indexed: bool = True, truth_every: int = 1,
+             compression_level: int | None = None) -> None:
         """Write the run as an MCAP log (contract 1), atomically.
 
         Parameters
@@ -92,7 +93,23 @@ class Recording:
             The ``rig`` metadata (every key of the rig block).
         run : mapping
             Extra ``run`` metadata (``seed``, ...); schema, created_by and version are added.
+        indexed : bool, optional
+            Index chunks and messages in the summary (:class:`RunLogWriter`'s ``indexed``).
+            False makes a log of many small messages about half as large; viewers then read it
+            linearly.
+        truth_every : int, optional
+            Write ``/sim/truth`` at every ``truth_every``-th sample only (samples 0, k, 2k,
+            ...), e.g. at the control period of a run logged faster. Nothing else changes.
+        compression_level : int, optional
+            zstd level of the chunks (:class:`RunLogWriter`'s ``compression_level``).
+
+        Raises
+        ------
+        ValueError
+            ``truth_every`` is not a positive integer.
         """
+        if isinstance(truth_every, bool) or not isinstance(truth_every, int) or truth_every < 1:
+            raise ValueError(f"truth_every must be a positive integer, got {truth_every!r}")
         # sample_period: the logging period, which an identification run makes shorter than
         # the control period rig.Ts (identification_run.IDENT_SAMPLE_PERIOD)
         meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__,
@@ -104,7 +121,8 @@ class Recording:
         sensors = np.column_stack([np.round(self.sensors_[:, 0], 9),
                                    np.round(self.sensors_[:, 1:], 3)])
         duties = np.round(self.duties_, 9)
-        with RunLogWriter(path, rig=rig, run=meta) as w:
+        with RunLogWriter(path, rig=rig, run=meta, indexed=indexed,
+                          compression_level=compression_level) as w:
             for t_seg, label, kind, params in self.segments_:
                 w.write("/experiment/segment", t_seg,
                         {"label": label, "kind": kind, "params": params})
@@ -114,8 +132,10 @@ class Recording:
             if self.truth_ is not None:
                 # v to 1 nm/s, a to 1 um/s^2, forces to 1 uN, mass flows to 1e-12 kg/s
                 truth = np.column_stack([np.round(col, d) for col, d in
-                                         zip(self.truth_.T, (9, 6, 6, 6, 12, 12), strict=True)])
-                w.write_many("/sim/truth", t, dict(zip(TRUTH_FIELDS, truth.T, strict=True)))
+                                         zip(self.truth_[::truth_every].T, (9, 6, 6, 6, 12, 12),
+                                             strict=True)])
+                w.write_many("/sim/truth", t[::truth_every],
+                             dict(zip(TRUTH_FIELDS, truth.T, strict=True)))
             if self.reference_ is not None:
                 ok = np.isfinite(self.reference_[:, 0])
                 w.write_many("/control/reference", t[ok],
