@@ -46,6 +46,7 @@ from pneutune.control.errors import ConfigError
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .report import Comparison, compare, write_report
+from .samplers import DEFAULT_SAMPLER, check_sampler, describe
 from .space import controller_from_params, search_space
 from .study import (
     DEFAULT_JOURNAL,
@@ -85,6 +86,9 @@ class TuneSettings:
         Seed of the plant draws, sensor noise and samplers, >= 0.
     objective : ObjectiveSettings
         Scenarios, draws and the cost (docs/tuning.md).
+    sampler : str
+        ``tpe`` (default) or ``cmaes`` (TPE, then CMA-ES warm-started from it; needs the
+        ``cmaes`` package); :mod:`pneutune.tune.samplers`.
     """
 
     trials: int
@@ -95,6 +99,7 @@ class TuneSettings:
     jobs: int | None = None
     seed: int = 1
     objective: ObjectiveSettings = field(default_factory=ObjectiveSettings)
+    sampler: str = DEFAULT_SAMPLER
 
     def __post_init__(self) -> None:
         if self.trials < 1:
@@ -105,6 +110,7 @@ class TuneSettings:
             raise TuneError(f"--seed must be >= 0, got {self.seed}")
         if self.jobs is not None and self.jobs < 1:
             raise TuneError(f"--jobs must be >= 1, got {self.jobs}")
+        check_sampler(self.sampler)  # unknown, or its package missing: before any simulation
 
 
 @dataclass
@@ -257,9 +263,11 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     ConfigError
         A missing or invalid model, one that cannot make a controller.yaml, one whose nominal
         plant nothing tracks, or a study with no complete trial (bad input: the model).
-    TuneError, StorageError, StudyMismatchError
-        Bad settings, an unusable storage, a stored study made for another model or seed.
+    TuneError, StorageError, StudyMismatchError, SamplerError
+        Bad settings, an unusable storage, a stored study made for another model, seed or
+        sampler, a sampler whose package is not installed.
     """
+    check_sampler(settings.sampler)
     model_cfg, model_sha, name = _load(model)
     try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
         controller_from_params(model_cfg, search_space(
@@ -277,12 +285,14 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         raise ConfigError(name, "", str(exc)) from None
     objective_settings = dataclasses.replace(settings.objective, box=feas.box)
     study_name = settings.study or default_study_name(model_sha, settings.seed,
-                                                      settings.objective.variant)
+                                                      settings.objective.variant,
+                                                      settings.sampler)
     jobs = settings.jobs if settings.jobs is not None else (
         min(available_cpus(), objective_settings.n_draws) if settings.workers == 1 else 1)
     spec = StudySpec(storage, study_name, settings.seed, settings.trials, settings.workers,
                      model_sha, objective_settings, jobs,
-                     extra_first=None if feas.paper_failure is None else feas.reference_params)
+                     extra_first=None if feas.paper_failure is None else feas.reference_params,
+                     sampler=settings.sampler)
     run = run_study(spec, model_cfg, progress=progress)
     study = run.study
     counts = run.counts_after
@@ -303,12 +313,13 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         "n_trials": settings.trials, "counts": counts, "controller": paths["controller"],
         "paper_path": os.path.relpath(PAPER_CONTROLLER), "plant_nominal": paths["plant_nominal"],
         "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
+        "sampler": describe(settings.sampler),
     }
     paths["report"] = str(write_report(out, objective, study, best, tuned, paper, comp,
                                        report_info))
     info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
-            "jobs": jobs, "n_trials": settings.trials}
+            "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler}
     return TuneResult(tuned, study, best, comp, feas, run, paths, info)
 
 

@@ -16,6 +16,7 @@ from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
 from .api import DEFAULT_OUT, TuneSettings, tune
 from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError
+from .samplers import CMAES_WARM_START, DEFAULT_SAMPLER, SAMPLERS
 from .space import VARIANTS
 from .study import DEFAULT_JOURNAL
 
@@ -42,6 +43,7 @@ EPILOG = """\
 examples:
   tune --trials 200
   tune --model reports/identify/model.yaml --trials 400 --workers 2 --seed 3
+  tune --trials 200 --sampler cmaes        (CMA-ES after a TPE warm start; pip install cmaes)
   tune --trials 200 --variant pid          (the PID baseline, same objective: a fair comparison)
   tune --trials 1000 --storage postgresql://tune@db.lan:5432/pneutune --study axis1 --workers 2
       (run the same command on several hosts: they share the study; docs/tuning.md)
@@ -102,12 +104,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="what to tune: the paper's modified DARC (default) or the pid "
                              "baseline on the same valve logic, with the same objective, so that "
                              "the comparison is fair")
+    parser.add_argument("--sampler", choices=SAMPLERS, default=DEFAULT_SAMPLER,
+                        help="tpe (default) or cmaes: TPE for the first "
+                             f"{CMAES_WARM_START} complete trials, then CMA-ES started from "
+                             "their best (needs: pip install 'pneutune[cmaes]'); a study "
+                             "keeps its sampler (default study name gets -cmaes)")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (progress and prose on stderr)")
     args = parser.parse_args(argv)
     settings = TuneSettings(
         trials=args.trials, out=args.out, storage=args.storage, study=args.study,
-        workers=args.workers, jobs=args.jobs, seed=args.seed,
+        workers=args.workers, jobs=args.jobs, seed=args.seed, sampler=args.sampler,
         objective=ObjectiveSettings(scenarios=_scenarios(args.scenarios), n_draws=args.draws,
                                     duration=args.duration, variant=args.variant))
     bar = tqdm(total=args.trials, desc="tune", unit="trial", file=sys.stderr, disable=None,

@@ -282,7 +282,8 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         "# tune report",
         "",
         f"- model: `{info['model']}` (sha256 `{info['model_sha256']}`)",
-        f"- study: `{study.study_name}` in `{info['storage']}`; seed {objective.seed}",
+        f"- study: `{study.study_name}` in `{info['storage']}`; seed {objective.seed}"
+        + (f"; sampler: {info['sampler']}" if info.get("sampler") else ""),
         f"- trials: {counts['COMPLETE']} complete, {counts['PRUNED']} pruned, "
         f"{counts['FAIL']} failed (wanted {info['n_trials']} complete + pruned)",
         f"- best trial: #{best.number}, objective {best.value:.4f}; "

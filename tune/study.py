@@ -26,8 +26,9 @@ scenario). A run's result does not depend on which thread computes it, so this k
 one-worker study reproducible while using the cores.
 
 Workers: ``--workers K`` starts K processes (``multiprocessing`` with the ``spawn`` start method)
-on the one study; K = 1 runs in the calling process. Worker i samples with a TPE sampler seeded
-by ``SeedSequence([seed, i, trials already in the study])``, so each worker is deterministic
+on the one study; K = 1 runs in the calling process. Worker i samples with the study's sampler
+(TPE by default; ``--sampler cmaes``: :mod:`pneutune.tune.samplers`) seeded by
+``SeedSequence([seed, i, trials already in the study])``, so each worker is deterministic
 given the study's history, and a resumed run does not repeat the random start-up points of the
 first run. With one worker the whole study is reproducible (same seed, same trials, same best
 trial); with several the interleaving of the workers is not. Each worker exits when its parent
@@ -58,6 +59,7 @@ from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.errors import PneutuneError
 
 from .objective import ObjectiveSettings, TuneObjective
+from .samplers import DEFAULT_SAMPLER, N_STARTUP_TRIALS, check_sampler, make_sampler
 from .space import search_space
 
 #: Study user attribute holding what the study was created with.
@@ -70,9 +72,9 @@ JOURNAL_LOCK_GRACE_S = 3
 #: Heartbeat of RDB storages [s] and the silence after which a running trial is failed [s].
 HEARTBEAT_INTERVAL = 10
 GRACE_PERIOD = 30
-#: TPE start-up (random) trials and MedianPruner start-up trials. (A PercentilePruner keeping the
-#: best third was measured too: 30 % faster, but a worse best trial on 3 of 3 studies.)
-N_STARTUP_TRIALS = 10
+#: MedianPruner start-up trials (TPE's are :data:`pneutune.tune.samplers.N_STARTUP_TRIALS`). (A
+#: PercentilePruner keeping the best third was measured too: 30 % faster, but a worse best trial
+#: on 3 of 3 studies.)
 PRUNER_STARTUP_TRIALS = 10
 _RDB_SCHEMES = ("sqlite", "postgresql", "postgres", "mysql", "mariadb", "oracle", "mssql")
 
@@ -89,10 +91,13 @@ class WorkerError(RuntimeError):
     """A worker process failed (its traceback is on stderr): an internal failure, exit 1."""
 
 
-def default_study_name(model_sha256: str, seed: int, variant: str = "modified_darc") -> str:
-    """``tune-<sha256[:12]>-seed<S>`` (``-pid`` appended for the pid variant): the same command
-    resumes the same study."""
+def default_study_name(model_sha256: str, seed: int, variant: str = "modified_darc",
+                       sampler: str = DEFAULT_SAMPLER) -> str:
+    """``tune-<sha256[:12]>-seed<S>`` (``-pid`` appended for the pid variant, ``-cmaes`` for a
+    sampler other than TPE): the same command resumes the same study."""
     suffix = "" if variant == "modified_darc" else f"-{variant}"
+    if sampler != DEFAULT_SAMPLER:
+        suffix += f"-{sampler}"
     return f"tune-{model_sha256[:12]}-seed{seed}{suffix}"
 
 
@@ -299,6 +304,9 @@ class StudySpec:
         Parameters enqueued after the paper's as the second trial of a new study (the
         reference controller of :mod:`pneutune.tune.feasibility` when the paper's gains do not
         track the nominal plant).
+    sampler : str
+        ``tpe`` (default) or ``cmaes`` (:mod:`pneutune.tune.samplers`; ``gp`` for benchmarks).
+        Stored with the study when not ``tpe``: a study is resumed only with its own sampler.
     """
 
     storage: str
@@ -310,19 +318,23 @@ class StudySpec:
     settings: ObjectiveSettings = field(default_factory=ObjectiveSettings)
     jobs: int = 1
     extra_first: dict[str, float] | None = None
+    sampler: str = DEFAULT_SAMPLER
 
     def meta(self, model: ModelConfig) -> dict[str, Any]:
         """What the study is created with (stored, then checked on resume)."""
-        return {"schema": STUDY_SCHEMA, "model_sha256": self.model_sha256, "seed": self.seed,
+        meta = {"schema": STUDY_SCHEMA, "model_sha256": self.model_sha256, "seed": self.seed,
                 "objective": self.settings.to_dict(),
                 "space": search_space(model, self.settings.variant).signature()}
+        if self.sampler != DEFAULT_SAMPLER:  # studies made before the option resume unchanged
+            meta["sampler"] = self.sampler
+        return meta
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data."""
         return {"storage": self.storage, "study_name": self.study_name, "seed": self.seed,
                 "n_trials": self.n_trials, "workers": self.workers,
                 "model_sha256": self.model_sha256, "settings": self.settings.to_dict(),
-                "jobs": self.jobs, "extra_first": self.extra_first}
+                "jobs": self.jobs, "extra_first": self.extra_first, "sampler": self.sampler}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> StudySpec:
@@ -369,8 +381,13 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
         return study
     have = _normalise(have)
     diffs = [k for k in want if have.get(k) != want[k]]
+    if "sampler" in have and "sampler" not in want:  # a CMA-ES study resumed with TPE
+        want["sampler"] = DEFAULT_SAMPLER
+        diffs.append("sampler")
     if diffs:
-        detail = "; ".join(f"{k}: study has {_short(have.get(k))}, this run {_short(want[k])}"
+        detail = "; ".join(f"{k}: study has "
+                           f"{_short(have.get(k, DEFAULT_SAMPLER if k == 'sampler' else None))}, "
+                           f"this run {_short(want[k])}"
                            for k in diffs)
         raise StudyMismatchError(
             f"study {spec.study_name!r} in {redact_url(spec.storage)} was created for another "
@@ -421,8 +438,7 @@ def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
     storage = open_storage(spec.storage)
     n_existing = len(storage.get_all_trials(
         storage.get_study_id_from_name(spec.study_name), deepcopy=False))
-    sampler = optuna.samplers.TPESampler(seed=sampler_seed(spec.seed, worker, n_existing),
-                                         n_startup_trials=N_STARTUP_TRIALS, constant_liar=True)
+    sampler = make_sampler(spec.sampler, sampler_seed(spec.seed, worker, n_existing))
     pruner = optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
                                          n_warmup_steps=0, interval_steps=1)
     study = optuna.load_study(study_name=spec.study_name, storage=storage, sampler=sampler,
@@ -515,6 +531,7 @@ def run_study(spec: StudySpec, model: ModelConfig,
         raise StorageError(f"--trials >= 1 must hold, got {spec.n_trials}")
     if spec.jobs < 1:
         raise StorageError(f"--jobs >= 1 must hold, got {spec.jobs}")
+    check_sampler(spec.sampler)
     t0 = time.perf_counter()
     with local_lock(spec.storage) as alone:
         repaired = False
@@ -567,7 +584,8 @@ def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
         raise WorkerError(f"worker process(es) failed: {bad} (see the traceback above)")
 
 
-__all__ = ["DEFAULT_JOURNAL", "RunSummary", "StorageError", "StudyMismatchError", "StudySpec",
+__all__ = ["DEFAULT_JOURNAL", "N_STARTUP_TRIALS", "RunSummary",
+           "StorageError", "StudyMismatchError", "StudySpec",
            "WorkerError", "default_study_name", "fail_leftover_trials",
            "finished", "local_file", "local_lock", "open_storage", "prepare_study",
            "redact_url", "repair_journal", "run_study", "sampler_seed", "storage_scheme",

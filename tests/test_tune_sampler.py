@@ -1,0 +1,71 @@
+"""``tune --sampler`` (issue 12, "The sampler"): TPE stays the default; ``cmaes`` is TPE, then
+CMA-ES warm-started from the TPE trials; without the ``cmaes`` package the command exits 2 with
+one ``error:`` line saying how to install it."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import optuna
+import pytest
+
+from pneutune.control.cli.common import run_cli
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
+from pneutune.tune import TuneSettings, cli, samplers, tune
+from pneutune.tune.objective import ObjectiveSettings
+from pneutune.tune.study import StudySpec, default_study_name
+
+QUICK = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=2.0)
+
+
+def test_the_default_sampler_stays_tpe() -> None:
+    """Default everywhere is the TPE sampler tune always used, and the default study name is
+    unchanged (so existing studies resume)."""
+    assert TuneSettings(trials=1).sampler == "tpe"
+    assert StudySpec("s.journal", "n", 1, 1, 1, "sha").sampler == "tpe"
+    sampler = samplers.make_sampler("tpe", 7)
+    assert type(sampler) is optuna.samplers.TPESampler
+    assert default_study_name("ab" * 32, 3) == f"tune-{'ab' * 6}-seed3"
+    assert default_study_name("ab" * 32, 3, sampler="cmaes") == f"tune-{'ab' * 6}-seed3-cmaes"
+
+
+def test_cmaes_continues_a_tpe_warm_start(tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a warm start of 10 complete trials: trials 0-9 are exactly those of the TPE study
+    with the same seed (the paper's trial, then TPE's start-up points), trials 10-13 are sampled
+    by CMA-ES (they carry its generation attribute), and report.md names the sampler."""
+    pytest.importorskip("cmaes")
+    monkeypatch.setattr(samplers, "CMAES_WARM_START", 10)
+    model = model_from_plant(PlantConfig())
+    cma = tune(model, TuneSettings(trials=14, out=tmp_path / "cma", jobs=1, objective=QUICK,
+                                   sampler="cmaes"))
+    tpe = tune(model, TuneSettings(trials=10, out=tmp_path / "tpe", jobs=1, objective=QUICK))
+    trials = cma.study.get_trials(deepcopy=False)
+    assert len(trials) == 14 and all(t.state.name == "COMPLETE" for t in trials)
+    assert [t.params for t in trials[:10]] == [t.params for t in tpe.study.trials]
+    assert not any("cma:generation" in t.system_attrs for t in trials[:10])
+    assert all("cma:generation" in t.system_attrs for t in trials[10:])
+    summary = cma.summary()
+    assert summary["sampler"] == "cmaes" and summary["study"].endswith("-cmaes")
+    report = Path(summary["report"]).read_text()
+    assert "sampler: CMA-ES warm-started from the first 10 complete TPE trials" in report
+
+
+def test_cmaes_without_the_package_exits_2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """`import cmaes` failing (simulated) is bad input: one error line with the install command,
+    exit status 2, before any simulation."""
+    monkeypatch.setitem(sys.modules, "cmaes", None)  # makes `import cmaes` raise ImportError
+    with pytest.raises(SystemExit) as exc:
+        run_cli(cli.main, ["--model", str(tmp_path / "missing.yaml"), "--trials", "3",
+                           "--sampler", "cmaes", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert err.count("error:") == 1 and err.startswith("error: --sampler cmaes needs the cmaes "
+                                                       "package")
+    assert "pip install 'pneutune[cmaes]'" in err
+    assert not (tmp_path / "study.journal").exists()
+    with pytest.raises(samplers.SamplerError, match="must be one of tpe, cmaes, gp"):
+        TuneSettings(trials=1, sampler="random")
