@@ -244,6 +244,9 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     row.identify = "ok"
     model = work / "identify" / "model.yaml"
     row.errors = id_errors(model, plant)
+    if args.identify_only:
+        row.seconds = time.perf_counter() - t0
+        return row
     out = work / "tune"
     if out.exists() and not args.resume:
         shutil.rmtree(out)
@@ -324,6 +327,8 @@ def main() -> int:
     ap.add_argument("--out", default="reports/fleet")
     ap.add_argument("--resume", action="store_true", help="keep existing tune studies")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
+    ap.add_argument("--identify-only", action="store_true",
+                    help="log (or reuse OUT's logs) and identify only: the identify columns")
     ap.add_argument("--table", metavar="FLEET.json",
                     help="only print the table of an earlier run's fleet.json")
     args = ap.parse_args()
