@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from matplotlib.figure import Figure
 
 from pneutune.control.constants import THETA_NAMES, THETA_UNITS, VALVES
 from pneutune.control.contracts.atomic import save_figure
-from pneutune.control.sim.closed_loop import ClosedLoopResult
+
+if TYPE_CHECKING:  # the annotation only: plotting does not load the compiled simulator
+    from pneutune.control.sim.closed_loop import ClosedLoopResult
 
 
 def plot_closed_loop(result: ClosedLoopResult, folder: str | os.PathLike[str]) -> list[Path]:
