@@ -52,7 +52,9 @@ from pneutune.control.law.layout import pack
 from pneutune.control.sim.closed_loop import (
     ClosedLoopResult,
     Metrics,
+    PreparedBatch,
     PreparedRun,
+    prepare_batch,
     prepare_run,
     run_batch,
     run_prepared,
@@ -313,8 +315,7 @@ class TuneObjective:
         Threads that run the draws of a scenario in parallel (numba's threads, one compiled call
         per scenario: :func:`~pneutune.control.sim.closed_loop.run_batch`). Every run is
         computed as if alone, so the values do not depend on ``jobs``; a trial's wall time
-        drops by up to ``min(jobs, draws)``. :meth:`close` (or the context manager) is kept for
-        callers that used the earlier process pool; it does nothing now.
+        drops by up to ``min(jobs, draws)``.
     """
 
     def __init__(self, model: ModelConfig, seed: int,
@@ -337,15 +338,8 @@ class TuneObjective:
         # initial state) is prepared once; every trial runs on the same prepared runs.
         self._runs: dict[str, tuple[PreparedRun, ...]] = {
             s.name: tuple(prepare_run(s, d.plant) for d in self.draws) for s in self.scenarios}
-
-    def close(self) -> None:
-        """Nothing to release (the draws run in numba's threads); kept for compatibility."""
-
-    def __enter__(self) -> TuneObjective:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        self._batches: dict[str, PreparedBatch] = {
+            name: prepare_batch(runs) for name, runs in self._runs.items()}
 
     def _threads(self) -> int:
         """Threads to run a scenario's draws on."""
@@ -361,13 +355,13 @@ class TuneObjective:
         list of ClosedLoopResult
             In draw order.
         """
-        runs = self._runs[scenario.name]
         abort_error = self.settings.abort_error if abort else np.inf
         previous = numba.get_num_threads()
         numba.set_num_threads(self._threads())
         try:
             with numba.parallel_chunksize(1):  # hand the runs out one at a time
-                return run_batch(runs, controller, abort_error=abort_error, cfg_vec=cfg_vec)
+                return run_batch(self._batches[scenario.name], controller,
+                                 abort_error=abort_error, cfg_vec=cfg_vec)
         finally:
             numba.set_num_threads(previous)
 

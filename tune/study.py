@@ -446,25 +446,21 @@ def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
     callbacks = [] if on_trial is None else [lambda _s, _t: on_trial()]
     ran = 0
     objective: TuneObjective | None = None
-    try:
-        while True:
-            if parent_pid is not None and os.getppid() != parent_pid:
-                break
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-                optuna.storages.fail_stale_trials(study)
-            counts = trial_counts(study)
-            if finished(counts) + counts["RUNNING"] >= spec.n_trials:
-                break
-            if only_waiting and counts["WAITING"] == 0:
-                break
-            if objective is None:  # only now: a resumed, finished study starts no processes
-                objective = TuneObjective(model, spec.seed, spec.settings, jobs=spec.jobs)
-            study.optimize(objective, n_trials=1, gc_after_trial=False, callbacks=callbacks)
-            ran += 1
-    finally:
-        if objective is not None:
-            objective.close()
+    while True:
+        if parent_pid is not None and os.getppid() != parent_pid:
+            break
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            optuna.storages.fail_stale_trials(study)
+        counts = trial_counts(study)
+        if finished(counts) + counts["RUNNING"] >= spec.n_trials:
+            break
+        if only_waiting and counts["WAITING"] == 0:
+            break
+        if objective is None:  # only now: a resumed, finished study prepares no runs
+            objective = TuneObjective(model, spec.seed, spec.settings, jobs=spec.jobs)
+        study.optimize(objective, n_trials=1, gc_after_trial=False, callbacks=callbacks)
+        ran += 1
     return ran
 
 

@@ -248,7 +248,8 @@ def scenario_plant(plant_cfg: PlantConfig, scenario: Scenario) -> PlantConfig:
 class PreparedRun:
     """Everything of a closed-loop run that does not depend on the controller.
 
-    Built once by :func:`prepare_run`; :func:`run_prepared` and :func:`run_batch` run any number
+    Built once by :func:`prepare_run`; :func:`run_prepared` and :func:`run_batch` (through
+    :func:`prepare_batch`) run any number
     of controllers on it (tuning scores every trial on the same prepared runs).
 
     Attributes
@@ -389,87 +390,109 @@ def run_prepared(run: PreparedRun, controller: ControllerConfig, record_truth: b
                    truth if record_truth else None)
 
 
+@dataclass(frozen=True)
+class PreparedBatch:
+    """Prepared runs of equal length stacked for :func:`run_batch` (built once per scenario by
+    :func:`prepare_batch`; row r of every array is run r).
+
+    Attributes
+    ----------
+    runs : tuple of PreparedRun
+    vecs, states, force_steps, n_force, p_s, refs, noise, Ts : ndarray
+        The runs' arrays stacked; ``force_steps[r, :n_force[r]]`` are run r's force steps.
+    """
+
+    runs: tuple[PreparedRun, ...]
+    vecs: np.ndarray
+    states: np.ndarray
+    force_steps: np.ndarray
+    n_force: np.ndarray
+    p_s: np.ndarray
+    refs: np.ndarray
+    noise: np.ndarray
+    Ts: np.ndarray
+
+
+def prepare_batch(runs: Sequence[PreparedRun]) -> PreparedBatch:
+    """Stack prepared runs of the same number of samples (the draws of one scenario).
+
+    Raises
+    ------
+    ValueError
+        No runs, or runs of different lengths.
+    """
+    if not runs:
+        raise ValueError("prepare_batch needs at least one run")
+    n = runs[0].n
+    if any(r.n != n for r in runs):
+        raise ValueError(f"prepare_batch needs runs of equal length, got "
+                         f"{sorted({r.n for r in runs})} samples")
+    k_max = max(1, max(r.force_steps.shape[0] for r in runs))
+    fsteps = np.zeros((len(runs), k_max, 2))
+    for i, r in enumerate(runs):
+        fsteps[i, :r.force_steps.shape[0]] = r.force_steps
+    arrays = (np.stack([r.vec for r in runs]), np.stack([r.state0 for r in runs]), fsteps,
+              np.array([r.force_steps.shape[0] for r in runs], dtype=np.int64),
+              np.stack([r.p_s for r in runs]), np.stack([r.reference for r in runs]),
+              np.stack([r.noise for r in runs]), np.array([r.Ts for r in runs]))
+    for arr in arrays:
+        arr.setflags(write=False)  # shared by every call; the kernel copies the states it changes
+    return PreparedBatch(tuple(runs), *arrays)
+
+
 @njit(cache=True, parallel=True)
-def run_batch_kernel(order: np.ndarray, vecs: np.ndarray, states: np.ndarray,
-                     force_steps: np.ndarray, n_force: np.ndarray, p_s: np.ndarray,
-                     cfg: np.ndarray, cstates: np.ndarray, refs: np.ndarray, noise: np.ndarray,
-                     Ts: np.ndarray, log_index: np.ndarray, abort_error: float,
-                     sensors: np.ndarray, duties: np.ndarray, cstate: np.ndarray,
-                     codes: np.ndarray) -> None:
+def run_batch_kernel(vecs: np.ndarray, states: np.ndarray, force_steps: np.ndarray,
+                     n_force: np.ndarray, p_s: np.ndarray, cfg: np.ndarray, cstates: np.ndarray,
+                     refs: np.ndarray, noise: np.ndarray, Ts: np.ndarray, log_index: np.ndarray,
+                     abort_error: float, sensors: np.ndarray, duties: np.ndarray,
+                     cstate: np.ndarray, codes: np.ndarray) -> None:
     """:func:`run_kernel` on R runs of equal length, in parallel over the runs (``prange``).
 
-    Run r uses row r of every per-run array (``force_steps[r, :n_force[r]]``); ``order`` is the
-    order in which the runs are handed out (longest first balances the threads). Each run is
-    computed exactly as by :func:`run_kernel` alone, so the results do not depend on the
-    number of threads or on ``order``.
+    Run r uses row r of every per-run array. Each run is computed exactly as by
+    :func:`run_kernel` alone, so the results do not depend on the number of threads.
     """
     no_truth = np.zeros((0, 6))
-    for j in prange(order.shape[0]):
-        r = order[j]
-        codes[r] = run_kernel(vecs[r], states[r], force_steps[r, :n_force[r]], p_s[r], cfg,
-                              cstates[r], refs[r], noise[r], Ts[r], log_index, abort_error,
-                              sensors[r], duties[r], cstate[r], no_truth)
+    for r in prange(vecs.shape[0]):
+        codes[r] = run_kernel(vecs[r], states[r].copy(), force_steps[r, :n_force[r]], p_s[r],
+                              cfg, cstates[r], refs[r], noise[r], Ts[r], log_index,
+                              abort_error, sensors[r], duties[r], cstate[r], no_truth)
 
 
-def run_batch(runs: Sequence[PreparedRun], controller: ControllerConfig,
-              abort_error: float = np.inf, cfg_vec: np.ndarray | None = None,
-              order: Sequence[int] | None = None) -> list[ClosedLoopResult]:
-    """Run ``controller`` on several prepared runs in one compiled, multi-threaded call.
+def run_batch(batch: PreparedBatch, controller: ControllerConfig, abort_error: float = np.inf,
+              cfg_vec: np.ndarray | None = None) -> list[ClosedLoopResult]:
+    """Run ``controller`` on every run of a batch in one compiled, multi-threaded call.
 
     Parameters
     ----------
-    runs : sequence of PreparedRun
-        Runs of the same number of samples (the draws of one scenario).
+    batch : PreparedBatch
+        From :func:`prepare_batch`.
     controller : ControllerConfig
     abort_error : float
         Stop a run when its |e1| exceeds this [m].
     cfg_vec : ndarray, optional
         Pre-packed ``controller``.
-    order : sequence of int, optional
-        Order in which to hand the runs to the threads (slowest first balances them);
-        default as given. The results are the same whatever the order.
 
     Returns
     -------
     list of ClosedLoopResult
-        In the order of ``runs``; each equal, bit for bit, to :func:`run_prepared` on it.
+        In the order of ``batch.runs``; each equal, bit for bit, to :func:`run_prepared` on it.
 
     Notes
     -----
     The threads are numba's (``numba.set_num_threads`` sets how many are used).
     """
-    if not runs:
-        return []
-    n = runs[0].n
-    if any(r.n != n for r in runs):
-        raise ValueError(f"run_batch needs runs of equal length, got "
-                         f"{sorted({r.n for r in runs})} samples")
-    R = len(runs)
+    runs = batch.runs
+    R, n = len(runs), runs[0].n
     cfg = pack(controller) if cfg_vec is None else cfg_vec
-    vecs = np.stack([r.vec for r in runs])
-    states = np.stack([r.state0 for r in runs])
-    k_max = max(1, max(r.force_steps.shape[0] for r in runs))
-    fsteps = np.zeros((R, k_max, 2))
-    n_force = np.zeros(R, dtype=np.int64)
-    for i, r in enumerate(runs):
-        k = r.force_steps.shape[0]
-        fsteps[i, :k] = r.force_steps
-        n_force[i] = k
     cstates = np.stack([init_state(cfg, float(r.reference[0, 0]), r.p_a0, r.p_b0)
                         for r in runs])
-    p_s = np.stack([r.p_s for r in runs])
-    refs = np.stack([r.reference for r in runs])
-    noise = np.stack([r.noise for r in runs])
-    Ts = np.array([r.Ts for r in runs])
     sensors = np.zeros((R, n, 4))
     duties = np.zeros((R, n, 4))
     cstate = np.zeros((R, n, LOG_INDEX.shape[0]))
     codes = np.zeros(R, dtype=np.int64)
-    ord_ = np.arange(R, dtype=np.int64) if order is None else np.asarray(order, dtype=np.int64)
-    if sorted(ord_.tolist()) != list(range(R)):
-        raise ValueError(f"order must be a permutation of range({R}), got {list(ord_)}")
-    run_batch_kernel(ord_, vecs, states, fsteps, n_force, p_s, cfg, cstates, refs, noise, Ts,
-                     LOG_INDEX, float(abort_error), sensors, duties, cstate, codes)
+    run_batch_kernel(batch.vecs, batch.states, batch.force_steps, batch.n_force, batch.p_s, cfg,
+                     cstates, batch.refs, batch.noise, batch.Ts, LOG_INDEX, float(abort_error),
+                     sensors, duties, cstate, codes)
     return [_result(r, controller, int(codes[i]), sensors[i], duties[i], cstate[i], None)
             for i, r in enumerate(runs)]
 
