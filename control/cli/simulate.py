@@ -22,6 +22,7 @@ from pneutune.control.cli.common import (
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ExperimentError
+from pneutune.control.logs.writer import ZSTD_LEVELS
 
 DESCRIPTION = """\
 Run the simulated rig (the paper's Sec. 2 model with valve switching, stiction, end stops and
@@ -205,8 +206,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (prose goes to stderr)")
     args = parser.parse_args(argv)
-    if args.compression_level is not None and not 1 <= args.compression_level <= 22:
-        raise ExperimentError(f"--compression-level must be in 1..22, got "
+    if args.compression_level is not None and args.compression_level not in ZSTD_LEVELS:
+        raise ExperimentError(f"--compression-level must be in {ZSTD_LEVELS.start}.."
+                              f"{ZSTD_LEVELS.stop - 1}, got "
                               f"{args.compression_level}")
 
     plant_cfg = load_plant(args.plant)
