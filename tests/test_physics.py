@@ -14,6 +14,7 @@ the force was already past F_S, and end-stop contact located by a single linear 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,11 +23,14 @@ from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
 from pneutune.control.constants import A_IN, A_OUT, B_IN, B_OUT, RHO0, T_REF
+from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.physics.flow import LIN_WIDTH, iso6358_flow, signed_flow
+from pneutune.control.physics.friction import stribeck_force, stribeck_stiffness
 from pneutune.control.physics.pwm import effective_open_fraction
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import (
+    P_DT,
     S_OPEN,
     S_PA,
     S_PB,
@@ -38,6 +42,8 @@ from pneutune.control.plant.params import (
 )
 from pneutune.control.rig.identification_run import position_loop
 from pneutune.control.rig.simrig import SimRig
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import SCENARIOS
 
 #: Sensors without noise or quantisation: readings equal the true state.
 QUIET = {"sensors": {"x_noise": 0.0, "x_step": 0.0, "p_noise": 0.0}}
@@ -340,10 +346,12 @@ def test_stick_below_and_slip_above_the_stiction_force(sign: float, excess: floa
         assert abs(f_app) <= f_s
 
 
-def _slide_reference(force: float, pa0: float, pb0: float, x0: float, f_s: float) -> float:
+def _slide_reference(force: float, pa0: float, pb0: float, x0: float, f_s: float,
+                     f_c: float = 50.0, v_s: float = 0.005, alpha: float = 2.0,
+                     b_v: float = 3500.0, mass: float = 1.05) -> float:
     """Distance [m] a piston at rest slides under ``force`` (> F_S) until v = 0: Eqs. (1)-(2),
-    chambers closed (p V^n constant), F_C 50 N, v_s 5 mm/s, alpha 2, b_v 3500 N s/m, M 1.05 kg,
-    integrated by solve_ivp independently of the plant."""
+    chambers closed (p V^n constant), by default F_C 50 N, v_s 5 mm/s, alpha 2, b_v 3500 N s/m,
+    M 1.05 kg, integrated by solve_ivp independently of the plant."""
     sign = math.copysign(1.0, force)
     va0, vb0 = V0A + A_A * (x0 - X_MIN), V0B + A_B * (X_MAX - x0)
 
@@ -352,8 +360,8 @@ def _slide_reference(force: float, pa0: float, pb0: float, x0: float, f_s: float
         pa = pa0 * (va0 / (V0A + A_A * (x - X_MIN))) ** N
         pb = pb0 * (vb0 / (V0B + A_B * (X_MAX - x))) ** N
         f_app = pa * A_A - pb * A_B - P0 * A_R + force
-        friction = (50.0 + (f_s - 50.0) * math.exp(-(abs(v) / 0.005) ** 2)) * sign + 3500.0 * v
-        return [v, (f_app - friction) / 1.05]
+        friction = (f_c + (f_s - f_c) * math.exp(-(abs(v) / v_s) ** alpha)) * sign + b_v * v
+        return [v, (f_app - friction) / mass]
 
     def stop(t: float, y: np.ndarray) -> float:
         return y[1] if t > 1.0e-6 else sign
@@ -362,6 +370,72 @@ def _slide_reference(force: float, pa0: float, pb0: float, x0: float, f_s: float
     sol = solve_ivp(rhs, (0.0, 0.3), [x0, sign * 1e-12], events=stop, rtol=1e-10, atol=1e-14,
                     max_step=1e-5)
     return abs(float(sol.y[0, -1]) - x0)
+
+
+@pytest.mark.parametrize("alpha", [0.7, 1.0, 2.0, 4.75])
+@pytest.mark.parametrize("u_over_vs", [0.0, 0.5, 1.0, 3.0])
+def test_stribeck_stiffness_is_the_steepest_slope_at_or_above_u(alpha: float,
+                                                                 u_over_vs: float) -> None:
+    """``stribeck_stiffness(u)`` = max over |v| >= u of |dF_f/dv| of Eq. (2), the speeds no lower
+    than 1e-3 v_s: against central differences of ``stribeck_force`` on a dense grid (the
+    analytic peak at r* = ((alpha-1)/alpha)^(1/alpha) must be the grid's maximum to 0.1 %)."""
+    f_s, f_c, v_s, b_v = 150.0, 50.0, 2.5e-3, 3500.0
+    u = u_over_vs * v_s
+    v = np.geomspace(max(u, 1.0e-3 * v_s), 50.0 * v_s, 200_001)
+    hv = 1.0e-9 * v
+    slope = np.array([(stribeck_force(a + h, 1.0, f_s, f_c, v_s, alpha, b_v)
+                       - stribeck_force(a - h, 1.0, f_s, f_c, v_s, alpha, b_v)) / (2.0 * h)
+                      for a, h in zip(v[::50], hv[::50], strict=True)])
+    expected = float(np.max(np.abs(slope)))
+    got = stribeck_stiffness(u, f_s, f_c, v_s, alpha, b_v)
+    assert got == pytest.approx(expected, rel=1.0e-3)
+
+
+def test_the_papers_friction_never_shortens_the_step() -> None:
+    """Paper rig: the steepest |dF_f/dv| is b_v = 3500 N s/m (the Stribeck slope peaks at
+    25 N * sqrt(2/e) / 5 mm/s = 4289 N s/m, minus b_v = 789), so 1.4 M / k = 1.4 * 1.05 / 3500
+    = 420 us >= sim.dt = 400 us: the run keeps the fixed 0.4 ms grid at every speed."""
+    pp = _params()
+    assert plant._sliding_step(pp.vec, 0.0) == pytest.approx(4.2e-4, rel=1e-9)
+    assert plant._sliding_step(pp.vec, 0.0) >= pp.vec[P_DT]
+
+
+def test_a_steep_law_slides_as_solve_ivp_with_the_default_step() -> None:
+    """A steep Stribeck law, F_S = 150 N, F_C = 50 N, v_s = 2.5 mm/s (the falling branch's
+    eigenvalue reaches ((F_S - F_C) max|g'| - b_v)/M = (100 * 0.858 / 2.5e-3 - 3500)/1.05 =
+    2.9e4 1/s, so RK4 needs steps of 48 us there), sim.dt = 400 us: a force step of F_S + 10 N
+    breaks the piston away; where it sticks again (506.2 um) matches solve_ivp (rtol 1e-10) to
+    0.01 % (measured: 2e-6; with 0.4 ms steps throughout, the step not following the speed, it is
+    0.09 % off). The step follows the speed: short at the break-away, 0.4 ms while stuck."""
+    f_s, f_c, v_s = 150.0, 50.0, 2.5e-3
+    x0 = 0.5 * (X_MIN + X_MAX)
+    force = f_s + 10.0
+    law = {"friction": {"F_S": f_s, "F_C": f_c, "v_s": v_s}}
+    pp = _params(law, {"disturbance": {"force_steps": [[0.01, force]]}})
+    assert pp.vec[P_DT] == 4.0e-4
+    assert plant._sliding_step(pp.vec, 0.0) == pytest.approx(
+        1.4 * 1.05 / (100.0 * 2.0 * math.sqrt(0.5) * math.exp(-0.5) / v_s - 3500.0), rel=1e-6)
+    pa, pb = plant.balanced_pressures(pp.vec, 3.0e5)
+    s = plant.initial_state(pp.vec, x0, pa, pb)
+    _advance(pp, s, 0.3)
+    dx = s[S_X] - x0
+    assert s[S_STUCK] == 1.0 and s[S_V] == 0.0
+    assert dx == pytest.approx(_slide_reference(force, pa, pb, x0, f_s, f_c, v_s), rel=1.0e-4)
+
+
+def test_a_steep_law_tracks_as_with_a_10_us_step() -> None:
+    """Closed loop (paper's DARC, sine-0.5hz, seed 1) on the paper's rig with F_S = 101.5 N,
+    F_C = 54.6 N, v_s = 1.81 mm/s, alpha = 3.19 (1.4 M/k_max = 45 us): the default step, shortened
+    near v = 0 only, gives E_p and E_rms of a fixed 10 us step within 0.01 and 0.002 mm
+    (benchmarks/friction_step.py: 0.328 / 0.097 against 0.331 / 0.098 mm)."""
+    ctl = load_controller(Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml")
+    cfg = PlantConfig().with_updates({"friction": {
+        "F_S": 101.5, "F_C": 54.6, "v_s": 1.81e-3, "alpha": 3.19, "b_v": 3520.0}})
+    default = simulate_scenario(ctl, SCENARIOS["sine-0.5hz"], cfg).metrics
+    fine = simulate_scenario(ctl, SCENARIOS["sine-0.5hz"],
+                             cfg.with_updates({"sim": {"dt": 1.0e-5}})).metrics
+    assert default.E_p_mm == pytest.approx(fine.E_p_mm, abs=0.01)
+    assert default.E_rms_mm == pytest.approx(fine.E_rms_mm, abs=0.002)
 
 
 def test_a_slow_move_sticks_alike_at_any_step_size() -> None:

@@ -5,6 +5,8 @@ control law), vectorised numpy forms beside them (identification), tested to agr
 * :func:`smooth_sign` / :func:`smooth_sign_array` - S_f of Eq. (4), ``(2/pi) arctan(1000 v)``.
 * :func:`smooth_friction` - Eqs. (3)-(4), the controller's smooth approximation
   ``b_v v + A_f S_f(v)``.
+* :func:`stribeck_stiffness` - the largest |dF_f/dv| of Eq. (2) at speeds of at least u: what
+  limits the plant's integration step while sliding.
 
 At v = 0 the direction of sliding is not v's sign: the scalar form takes it as an argument
 (the plant passes the sign of the applied force at a break-away); the vectorised form takes
@@ -59,6 +61,42 @@ def stribeck_force(v: float, direction: float, F_S: float, F_C: float, v_s: floa
     else:
         g = 1.0
     return (F_C + (F_S - F_C) * g) * direction + b_v * v
+
+
+#: Lowest speed, as a fraction of v_s, at which the Stribeck slope is evaluated: for alpha < 1 the
+#: slope grows without bound as v -> 0.
+STRIBECK_FLOOR: float = 1.0e-3
+
+
+@njit(cache=True)
+def stribeck_stiffness(u: float, F_S: float, F_C: float, v_s: float, alpha: float,
+                       b_v: float) -> float:
+    """Largest |dF_f/dv| of Eq. (2) over all sliding speeds |v| >= ``u`` [N s/m].
+
+    dF_f/dv = b_v - (F_S - F_C) s(|v|) with the Stribeck slope
+    ``s = alpha/v_s r^(alpha-1) exp(-r^alpha)``, r = |v|/v_s. The slope rises to its peak at
+    ``r* = ((alpha-1)/alpha)^(1/alpha)`` (alpha > 1; r* = 0 otherwise) and falls beyond it,
+    so its maximum over r >= u/v_s is at ``max(u/v_s, r*)`` (r never below
+    :data:`STRIBECK_FLOOR`). The result is ``max(b_v, (F_S - F_C) s - b_v)``: the viscous mode
+    (eigenvalue -b_v/M) or the unstable mode on the falling branch.
+
+    Parameters
+    ----------
+    u : float
+        Lowest speed considered [m/s], >= 0.
+    F_S, F_C, v_s, alpha, b_v : float
+        Eq. (2)'s parameters [N, N, m/s, -, N s/m].
+
+    Returns
+    -------
+    float
+        [N s/m], at least 1e-9.
+    """
+    r_peak = math.exp(math.log((alpha - 1.0) / alpha) / alpha) if alpha > 1.0 else 0.0
+    r = max(u / v_s, r_peak, STRIBECK_FLOOR)
+    ra = math.exp(alpha * math.log(r))
+    slope = (F_S - F_C) * alpha / v_s * (ra / r) * math.exp(-ra)
+    return max(b_v, slope - b_v, 1.0e-9)
 
 
 @njit(cache=True)

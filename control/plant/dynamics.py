@@ -22,9 +22,16 @@ Chambers, Eqs. (5)-(6)
     ISO 6358 (Eq. 7, reverse flow included) and the optional seal leak A<->B (ISO 6358 form,
     b = 0).
 Integration
-    Classical RK4 with fixed steps of at most ``sim.dt``, split at every valve switching instant,
+    Classical RK4 with steps of at most ``sim.dt``, split at every valve switching instant,
     controller sample and force step, so that the right-hand side is smooth inside every step.
-    The step size comes from a convergence study (docs/integration.md).
+    The step size comes from a convergence study (docs/integration.md). While sliding, a step
+    is also at most ``1.4 M / k(u)``, k the largest |dF_f/dv| of Eq. (2) at the speeds u the
+    step passes through (:func:`~pneutune.control.physics.friction.stribeck_stiffness`): the
+    falling Stribeck branch of a steep friction law (large F_S - F_C, small v_s) needs steps
+    of tens of microseconds, but only near v = 0; elsewhere, and while stuck, ``sim.dt``
+    stands. A step that ends slower than the speed its length was chosen for is taken again,
+    shorter. (A plant whose friction never limits the step is integrated on exactly the grid
+    of ``sim.dt``.)
 """
 
 from __future__ import annotations
@@ -36,7 +43,7 @@ from numba import njit
 
 from pneutune.control.logs.topics import topic_fields
 from pneutune.control.physics.flow import iso6358_flow, signed_flow
-from pneutune.control.physics.friction import stribeck_force
+from pneutune.control.physics.friction import stribeck_force, stribeck_stiffness
 from pneutune.control.plant.params import (
     N_STATE,
     P_AA,
@@ -72,6 +79,7 @@ from pneutune.control.plant.params import (
     S_T,
     S_V,
     S_X,
+    STEP_STIFFNESS,
 )
 from pneutune.control.plant.valves import EPS_T, next_event, process_events, set_duties
 
@@ -226,6 +234,13 @@ def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: flo
 
 
 @njit(cache=True)
+def _sliding_step(p: np.ndarray, u: float) -> float:
+    """Longest RK4 step while sliding at speeds of at least ``u`` [s] (module docstring)."""
+    k = stribeck_stiffness(u, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
+    return STEP_STIFFNESS * p[P_M] / k
+
+
+@njit(cache=True)
 def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: float) -> None:
     """Integrate ``s`` over ``h_total`` seconds with the valves as they are (no events inside)."""
     dt = p[P_DT]
@@ -233,12 +248,18 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
     if nsteps < 1:
         nsteps = 1
     h = h_total / nsteps
+    # friction can limit the step only where the plant's stiffest point needs less than sim.dt
+    h_min = _sliding_step(p, 0.0)
+    stiff = h_min < dt
+    max_steps = nsteps
+    if stiff:
+        max_steps = max(nsteps, math.ceil(h_total / h_min - 1.0e-9))
     x, v, pa, pb = s[S_X], s[S_V], s[S_PA], s[S_PB]
     stuck = s[S_STUCK] > 0.5
     xmin, xmax = p[P_XMIN], p[P_XMAX]
     remaining = h_total
     guard = 0
-    while remaining > 1.0e-13 and guard < 4 * nsteps + 64:
+    while remaining > 1.0e-13 and guard < 4 * max_steps + 64:
         guard += 1
         step = h if h < remaining else remaining
         if stuck:
@@ -266,7 +287,18 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
         # sliding
         f_now = applied_force(p, pa, pb, f_ext)
         d = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else (1.0 if f_now > 0.0 else -1.0))
+        if stiff:
+            step = min(step, _sliding_step(p, abs(v)))
         x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, step)
+        if stiff:
+            # the step must suit the slowest speed it reached; else take it again, shorter
+            for _ in range(8):
+                u = min(abs(v), abs(v1)) if v1 * d > 0.0 else 0.0
+                h_ok = _sliding_step(p, u)
+                if step <= h_ok * (1.0 + 1.0e-12):
+                    break
+                step = h_ok
+                x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, step)
         hit_stop = x1 > xmax or x1 < xmin
         reversed_ = (v1 * d) <= 0.0
         if not hit_stop and not reversed_:
