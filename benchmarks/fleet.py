@@ -11,7 +11,10 @@ leak, sensor noise, both PWM update modes) and each log kind
   (0.5 Hz sine, 0.75 Hz sine, smooth square; 37 s, no labels that identify may use);
 * ``d``: the commissioning run, a second protocol (``simulate --experiment commissioning``);
 * ``e``: a 12 s closed-loop 4 ms log of the paper's gains on ``sine-0.5hz`` (what ``deploy
-  --log`` writes),
+  --log`` writes);
+* ``t``: no log: the true plant read as a model (``model_from_plant``, every range the value
+  ±20 %), what a perfect identify would give. It bounds what identify -> tune can reach on the
+  plant with the trial budget,
 
 it runs ``identify`` on the log, ``tune`` (the command, with a fixed modest trial budget) on the
 model, and scores the tuned controller and ``data/controller-paper.yaml`` on the **true** plant
@@ -43,6 +46,7 @@ import numpy as np
 
 from pneutune.control.constants import VALVES
 from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.model import save_model
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.contracts.yamlio import write_yaml
 from pneutune.control.sim.closed_loop import simulate_scenario
@@ -54,6 +58,7 @@ from pneutune.control.sim.scenarios import (
     sine,
     smooth_square,
 )
+from pneutune.control.sim.truth import model_from_plant
 
 KINDS = {
     "a": "identification run, 0.5 ms",
@@ -61,6 +66,7 @@ KINDS = {
     "c": "closed loop, paper's gains, Table-1 references, 37 s, 4 ms",
     "d": "commissioning run (second protocol), 4 ms",
     "e": "closed loop, paper's gains, sine-0.5hz, 12 s, 4 ms",
+    "t": "no log: the true plant as the model (model_from_plant), the ceiling",
 }
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 SCORED = (*GROUPS["table1"], "disturbance-0.5hz")
@@ -160,6 +166,7 @@ class Row:
     tune_note: str = ""
     e_p: dict[str, tuple[float, float]] | None = None
     seconds: float = 0.0
+    tune_seconds: float = 0.0
 
     @property
     def passed(self) -> bool:
@@ -232,17 +239,21 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     work = Path(args.out) / f"plant{plant_index:02d}" / kind
     work.mkdir(parents=True, exist_ok=True)
     write_yaml(work.parent / "plant.yaml", plant.to_dict(), header="fleet plant (truth)")
-    log = work / "run.mcap"
-    if not log.is_file():
-        write_log(kind, plant, log, seed=plant_index + 1)
-    proc = subprocess.run([_exe("identify"), str(log), "--out", str(work / "identify"),
-                           "--json"], capture_output=True, text=True)
-    if proc.returncode != 0:
-        row.identify = f"exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]}"
-        row.seconds = time.perf_counter() - t0
-        return row
-    row.identify = "ok"
     model = work / "identify" / "model.yaml"
+    if kind == "t":
+        model.parent.mkdir(parents=True, exist_ok=True)
+        save_model(model_from_plant(plant), model)
+    elif not (args.reuse_identify and model.is_file()):
+        log = work / "run.mcap"
+        if not log.is_file():
+            write_log(kind, plant, log, seed=plant_index + 1)
+        proc = subprocess.run([_exe("identify"), str(log), "--out", str(work / "identify"),
+                               "--json"], capture_output=True, text=True)
+        if proc.returncode != 0:
+            row.identify = f"exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]}"
+            row.seconds = time.perf_counter() - t0
+            return row
+    row.identify = "ok"
     row.errors = id_errors(model, plant)
     if args.identify_only:
         row.seconds = time.perf_counter() - t0
@@ -250,9 +261,11 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     out = work / "tune"
     if out.exists() and not args.resume:
         shutil.rmtree(out)
+    t_tune = time.perf_counter()
     proc = subprocess.run([_exe("tune"), "--model", str(model), "--trials", str(args.trials),
                            "--out", str(out), "--seed", "1", "--json"],
                           capture_output=True, text=True)
+    row.tune_seconds = time.perf_counter() - t_tune
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or [""]
         row.tune = f"exit {proc.returncode}"
@@ -263,7 +276,7 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     row.tune = "ok"
     narrowed = res.get("narrowed") or []
     tr = res["trials"]
-    row.tune_note = (f"{tr['complete']}/{tr['finished']} complete"
+    row.tune_note = (f"{tr['complete']}/{tr['finished']} complete, {row.tune_seconds:.0f} s"
                      + (f"; narrowed {len(narrowed)}" if narrowed else ""))
     noise = 1000 + plant_index
     tuned = score(out / "controller.yaml", plant, noise)
@@ -303,11 +316,14 @@ def table(rows: list[Row]) -> str:
 
 
 def summarise(rows: list[Row]) -> str:
-    """One line: rows that pass, rows on issue 12's E_p target."""
+    """One line: rows that pass, rows on issue 12's E_p target, the tune wall times."""
+    walls = [r.tune_seconds for r in rows if r.tune_seconds > 0.0]
+    wall = (f"; tune wall time {min(walls):.0f}-{max(walls):.0f} s (median "
+            f"{float(np.median(walls)):.0f} s)" if walls else "")
     return (f"{sum(r.passed for r in rows)}/{len(rows)} rows pass (tuned beats the paper's "
             f"gains on every Table-1 scenario); {sum(r.on_target for r in rows)}/{len(rows)} "
             f"on the E_p target (<= {QUALITY_MM:.2f} mm, disturbance <= "
-            f"{QUALITY_DISTURBANCE_MM:.2f} mm)")
+            f"{QUALITY_DISTURBANCE_MM:.2f} mm){wall}")
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -327,6 +343,9 @@ def main() -> int:
     ap.add_argument("--out", default="reports/fleet")
     ap.add_argument("--resume", action="store_true", help="keep existing tune studies")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
+    ap.add_argument("--reuse-identify", action="store_true",
+                    help="where OUT/plantNN/KIND/identify/model.yaml exists, tune it as it is "
+                    "(no new log, no identify)")
     ap.add_argument("--identify-only", action="store_true",
                     help="log (or reuse OUT's logs) and identify only: the identify columns")
     ap.add_argument("--table", metavar="FLEET.json",

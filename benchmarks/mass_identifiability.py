@@ -27,7 +27,15 @@ from scipy.optimize import minimize_scalar
 
 from pneutune.control.constants import VALVES
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.plant.params import P_BV, P_DOFF, P_DON, P_M, P_MINP, pack_plant
+from pneutune.control.plant.params import (
+    P_BV,
+    P_DOFF,
+    P_DON,
+    P_M,
+    P_MINP,
+    pack_plant,
+    set_step_limits,
+)
 from pneutune.control.rig.identification_run import simulate_identification
 from pneutune.identify.dataset import Dataset, load_dataset
 from pneutune.identify.prediction import position_innovations, pressure_residuals
@@ -62,6 +70,7 @@ def fit_mass(d: Dataset, base: np.ndarray) -> float:
     def cost(M: float) -> float:
         p = base.copy()
         p[P_M] = M
+        set_step_limits(p)
         out = np.zeros((1, d.n))
         position_innovations(p[None, :], np.zeros((0, 2)), d.t, d.x, d.p_a, d.p_b, d.p_s, u,
                              starts, ends, GAIN, out)

@@ -6,7 +6,7 @@ control law), vectorised numpy forms beside them (identification), tested to agr
 * :func:`smooth_friction` - Eqs. (3)-(4), the controller's smooth approximation
   ``b_v v + A_f S_f(v)``.
 * :func:`stribeck_stiffness` - the largest |dF_f/dv| of Eq. (2) at speeds of at least u: what
-  limits the plant's integration step while sliding.
+  limits the plant's integration step while sliding (:func:`stribeck_peak`: where it peaks).
 
 At v = 0 the direction of sliding is not v's sign: the scalar form takes it as an argument
 (the plant passes the sign of the applied force at a break-away); the vectorised form takes
@@ -69,16 +69,27 @@ STRIBECK_FLOOR: float = 1.0e-3
 
 
 @njit(cache=True)
+def stribeck_peak(alpha: float) -> float:
+    """Where the Stribeck slope of Eq. (2) peaks, as r = |v|/v_s [-].
+
+    The slope ``s(r) = alpha/v_s r^(alpha-1) exp(-r^alpha)`` of g = exp(-r^alpha) rises to its
+    peak at ``r* = ((alpha-1)/alpha)^(1/alpha)`` for alpha > 1 and falls beyond it; for
+    alpha <= 1 it falls from r = 0 (without bound as r -> 0 for alpha < 1). Returns
+    ``max(r*, STRIBECK_FLOOR)``.
+    """
+    r_peak = math.exp(math.log((alpha - 1.0) / alpha) / alpha) if alpha > 1.0 else 0.0
+    return max(r_peak, STRIBECK_FLOOR)
+
+
+@njit(cache=True)
 def stribeck_stiffness(u: float, F_S: float, F_C: float, v_s: float, alpha: float,
-                       b_v: float) -> float:
+                       b_v: float, r_peak: float) -> float:
     """Largest |dF_f/dv| of Eq. (2) over all sliding speeds |v| >= ``u`` [N s/m].
 
-    dF_f/dv = b_v - (F_S - F_C) s(|v|) with the Stribeck slope
-    ``s = alpha/v_s r^(alpha-1) exp(-r^alpha)``, r = |v|/v_s. The slope rises to its peak at
-    ``r* = ((alpha-1)/alpha)^(1/alpha)`` (alpha > 1; r* = 0 otherwise) and falls beyond it,
-    so its maximum over r >= u/v_s is at ``max(u/v_s, r*)`` (r never below
-    :data:`STRIBECK_FLOOR`). The result is ``max(b_v, (F_S - F_C) s - b_v)``: the viscous mode
-    (eigenvalue -b_v/M) or the unstable mode on the falling branch.
+    dF_f/dv = b_v - (F_S - F_C) s(|v|) with the Stribeck slope s of :func:`stribeck_peak`,
+    whose maximum over r >= u/v_s is at ``max(u/v_s, r_peak)``. The result is
+    ``max(b_v, (F_S - F_C) s - b_v)``: the viscous mode (eigenvalue -b_v/M) or the unstable
+    mode on the falling branch.
 
     Parameters
     ----------
@@ -86,15 +97,16 @@ def stribeck_stiffness(u: float, F_S: float, F_C: float, v_s: float, alpha: floa
         Lowest speed considered [m/s], >= 0.
     F_S, F_C, v_s, alpha, b_v : float
         Eq. (2)'s parameters [N, N, m/s, -, N s/m].
+    r_peak : float
+        ``stribeck_peak(alpha)`` (passed in: the plant computes it once).
 
     Returns
     -------
     float
         [N s/m], at least 1e-9.
     """
-    r_peak = math.exp(math.log((alpha - 1.0) / alpha) / alpha) if alpha > 1.0 else 0.0
-    r = max(u / v_s, r_peak, STRIBECK_FLOOR)
-    ra = math.exp(alpha * math.log(r))
+    r = max(u / v_s, r_peak)
+    ra = r * r if alpha == 2.0 else math.exp(alpha * math.log(r))
     slope = (F_S - F_C) * alpha / v_s * (ra / r) * math.exp(-ra)
     return max(b_v, slope - b_v, 1.0e-9)
 

@@ -55,6 +55,7 @@ from pneutune.control.plant.params import (
     P_DA,
     P_DB,
     P_DT,
+    P_DTMIN,
     P_FC,
     P_FN,
     P_FS,
@@ -64,7 +65,9 @@ from pneutune.control.plant.params import (
     P_P0,
     P_PNOISE,
     P_R,
+    P_RPEAK,
     P_T0,
+    P_UFREE,
     P_V0A,
     P_V0B,
     P_VS,
@@ -236,7 +239,7 @@ def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: flo
 @njit(cache=True)
 def _sliding_step(p: np.ndarray, u: float) -> float:
     """Longest RK4 step while sliding at speeds of at least ``u`` [s] (module docstring)."""
-    k = stribeck_stiffness(u, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
+    k = stribeck_stiffness(u, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV], p[P_RPEAK])
     return STEP_STIFFNESS * p[P_M] / k
 
 
@@ -248,9 +251,11 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
     if nsteps < 1:
         nsteps = 1
     h = h_total / nsteps
-    # friction can limit the step only where the plant's stiffest point needs less than sim.dt
-    h_min = _sliding_step(p, 0.0)
-    stiff = h_min < dt
+    # friction can limit the step only where the plant's stiffest point needs less than h
+    h_min = p[P_DTMIN]
+    stiff = h_min < h
+    u_free = p[P_UFREE]  # above this speed only the viscous mode limits the step, to h_visc
+    h_visc = STEP_STIFFNESS * p[P_M] / p[P_BV] if p[P_BV] > 0.0 else np.inf
     max_steps = nsteps
     if stiff:
         max_steps = max(nsteps, math.ceil(h_total / h_min - 1.0e-9))
@@ -288,16 +293,18 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
         f_now = applied_force(p, pa, pb, f_ext)
         d = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else (1.0 if f_now > 0.0 else -1.0))
         if stiff:
-            step = min(step, _sliding_step(p, abs(v)))
+            h_ok = _sliding_step(p, abs(v)) if abs(v) < u_free else h_visc
+            if h_ok < step:  # split what is left evenly (no sliver of a step at the end)
+                step = remaining / math.ceil(remaining / h_ok - 1.0e-9)
         x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, step)
-        if stiff:
+        if stiff and (abs(v) < u_free or abs(v1) < u_free or v1 * d <= 0.0):
             # the step must suit the slowest speed it reached; else take it again, shorter
             for _ in range(8):
                 u = min(abs(v), abs(v1)) if v1 * d > 0.0 else 0.0
                 h_ok = _sliding_step(p, u)
                 if step <= h_ok * (1.0 + 1.0e-12):
                     break
-                step = h_ok
+                step = remaining / math.ceil(remaining / h_ok - 1.0e-9)
                 x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, step)
         hit_stop = x1 > xmax or x1 < xmin
         reversed_ = (v1 * d) <= 0.0

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.physics.friction import stribeck_peak, stribeck_stiffness
 
 P_AA, P_AB, P_XMIN, P_XMAX, P_V0A, P_V0B, P_P0, P_T0, P_N, P_R = range(10)
 P_TS, P_TPWM, P_LATCHED, P_M, P_FS, P_FC, P_VS, P_ALPHA, P_BV = range(10, 19)
@@ -22,7 +23,10 @@ P_DON = 27  # 4 slots: opening delay [s]
 P_DOFF = 31  # 4 slots: closing delay [s]
 P_MINP = 35  # 4 slots: minimum pulse [s]
 P_LEAKC, P_FN, P_DA, P_DB, P_DT, P_XNOISE, P_XSTEP, P_PNOISE = range(39, 47)
-N_PARAMS = 47
+P_DTMIN = 47  # the step the steepest sliding friction needs, <= P_DT (set_step_limits) [s]
+P_RPEAK = 48  # where the Stribeck slope peaks, |v|/v_s (physics.friction.stribeck_peak) [-]
+P_UFREE = 49  # above this speed only b_v may shorten the step (set_step_limits) [m/s]
+N_PARAMS = 50
 #: RK4 keeps ``h * stiffness / M`` at most this (its stability limit on the real axis is 2.79).
 STEP_STIFFNESS: float = 1.4
 
@@ -50,6 +54,42 @@ class PlantParams:
     p_s: float
     seed: int
     config: PlantConfig
+
+
+def set_step_limits(v: np.ndarray) -> None:
+    """Fill ``P_RPEAK``, ``P_DTMIN`` and ``P_UFREE`` of a parameter vector from its friction,
+    mass and ``P_DT`` (call again after changing any of them).
+
+    ``P_DTMIN = min(P_DT, STEP_STIFFNESS M / k_max)``, k_max the largest |dF_f/dv| at any speed
+    (:func:`~pneutune.control.physics.friction.stribeck_stiffness` at u = 0): the shortest step
+    the integrator may take while sliding. When it equals ``P_DT`` the friction never shortens
+    a step. ``P_UFREE``: the speed above which the Stribeck branch needs no shorter step than
+    ``min(P_DT, STEP_STIFFNESS M / b_v)`` (0 when it never does), so that a fast step costs no
+    evaluation of the slope.
+    """
+    v[P_RPEAK] = stribeck_peak(v[P_ALPHA])
+
+    def k(u: float) -> float:
+        return stribeck_stiffness(u, v[P_FS], v[P_FC], v[P_VS], v[P_ALPHA], v[P_BV], v[P_RPEAK])
+
+    # above P_UFREE the step needs no more than min(P_DT, 1.4 M / b_v): the Stribeck branch is
+    # no steeper there than what P_DT or the viscous mode allows anyway
+    k_flat = max(STEP_STIFFNESS * v[P_M] / v[P_DT], v[P_BV])
+    v[P_DTMIN] = min(v[P_DT], STEP_STIFFNESS * v[P_M] / k(0.0))
+    if k(0.0) <= k_flat:
+        v[P_UFREE] = 0.0
+    else:  # k(u) falls with u above the peak: bisect for k(u) = k_flat
+        lo = v[P_RPEAK] * v[P_VS]
+        hi = 2.0 * lo + v[P_VS]
+        while k(hi) > k_flat:
+            hi *= 2.0
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            if k(mid) > k_flat:
+                lo = mid
+            else:
+                hi = mid
+        v[P_UFREE] = hi
 
 
 def pack_plant(cfg: PlantConfig) -> PlantParams:
@@ -81,6 +121,7 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     d = cfg.disturbance
     v[P_FN], v[P_DA], v[P_DB] = d.F_n, d.D_a, d.D_b
     v[P_DT] = cfg.sim.dt  # the longest step; sliding friction may shorten it (dynamics)
+    set_step_limits(v)
     s = cfg.sensors
     v[P_XNOISE], v[P_XSTEP], v[P_PNOISE] = s.x_noise, s.x_step, s.p_noise
     v.setflags(write=False)
