@@ -166,3 +166,21 @@ def test_theta_drift_says_whether_theta_hat_has_settled(paper):
     longer = simulate_scenario(paper, dataclasses.replace(sc, duration=30.0), seed=1).metrics
     assert longer.theta_drift < res.metrics.theta_drift
     assert longer.theta_settled == (longer.theta_drift < THETA_SETTLED)
+
+
+def test_full_open_marks_tracking_the_valves_cannot_deliver(paper):
+    """Metrics.full_open, the share of the metric window with a valve at the PWM curve's top duty
+    (0.94 in data/controller-paper.yaml: the first duty at the curve's largest ratio). Measured:
+    the paper's rig tracks sine-0.75hz with it at 1 % (E_p 0.32 mm); with every valve's C at
+    0.7x it is 52 % and E_p 2.06 mm, the 0.75 Hz sine's peak speed being more than the weaker
+    valves can deliver, whatever the gains. sine-0.5hz on the weak valves: 0 %, E_p 0.30 mm."""
+    assert paper.pwm.top_duty == pytest.approx(0.94)
+    base = PlantConfig()
+    weak = base.with_updates({"valves": {
+        n: {"C": getattr(base.valves, n).C * 0.7} for n in ("a_in", "a_out", "b_in", "b_out")}})
+    nominal = simulate_scenario(paper, SCENARIOS["sine-0.75hz"], seed=1).metrics
+    limited = simulate_scenario(paper, SCENARIOS["sine-0.75hz"], weak, seed=1).metrics
+    slow = simulate_scenario(paper, SCENARIOS["sine-0.5hz"], weak, seed=1).metrics
+    assert nominal.full_open < 0.05 and nominal.E_p_mm < 0.5
+    assert limited.full_open > 0.4 and limited.E_p_mm > 1.5
+    assert slow.full_open < 0.05 and slow.E_p_mm < 0.5

@@ -30,6 +30,9 @@ from .space import params_from_controller
 
 #: The held-out plants and noise are drawn with ``seed + HELDOUT_SEED_OFFSET`` (:func:`compare`).
 HELDOUT_SEED_OFFSET = 1_000_003
+#: report.md says the valves' flow limits a scenario when the tuned controller keeps them fully
+#: open for at least this share of the metric window (Metrics.full_open) [-].
+FLOW_LIMITED = 0.10
 
 
 @dataclass
@@ -242,18 +245,35 @@ def _fmt(x: float | None, digits: int = 3) -> str:
 
 def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list[str]:
     lines = ["| scenario | Table 1 (rig) E_p / E_rms | paper gains E_p / E_rms | tuned E_p / E_rms "
-             "| switches/s paper / tuned | status paper / tuned |",
-             "|---|---|---|---|---|---|"]
+             "| switches/s paper / tuned | valves fully open paper / tuned "
+             "| status paper / tuned |",
+             "|---|---|---|---|---|---|---|"]
     tuned = comp.table("tuned", draw)
     paper = comp.table("paper", draw)
+    limited = []
     for sc in objective.scenarios:
         t, p = tuned[sc.name], paper[sc.name]
         rig = f"{sc.paper[0]:.2f} / {sc.paper[1]:.2f}" if sc.paper else "-"
         lines.append(f"| {sc.name} | {rig} | {_fmt(p['E_p_mm'])} / {_fmt(p['E_rms_mm'])} "
                      f"| {_fmt(t['E_p_mm'])} / {_fmt(t['E_rms_mm'])} "
                      f"| {_fmt(p['switches_per_s'], 1)} / {_fmt(t['switches_per_s'], 1)} "
+                     f"| {_pct(p.get('full_open'))} / {_pct(t.get('full_open'))} "
                      f"| {p['status']} / {t['status']} |")
+        share = t.get("full_open")
+        if share is not None and np.isfinite(share) and share >= FLOW_LIMITED:
+            limited.append(f"{sc.name} ({share * 100:.0f} %)")
+    if limited:
+        lines += ["", f"Valve flow limits the tracking on {', '.join(limited)}: the tuned "
+                  "controller opens the valves fully for that share of the metric window, so "
+                  "there the error is set by the valves' flow (and the reference's speed), "
+                  "not by the gains; more trials will not lower it."]
     return lines
+
+
+def _pct(x: float | None) -> str:
+    if x is None or not np.isfinite(x):
+        return "-"
+    return f"{x * 100:.0f} %"
 
 
 def _feasibility(notes: list[str]) -> list[str]:

@@ -113,6 +113,13 @@ class PwmCurve(_Strict):
             raise ValueError(f"ratio must reach a value > 0 (the valves must open), got {r[-1]}")
         return self
 
+    @property
+    def top_duty(self) -> float:
+        """The smallest duty at which the curve reaches its largest ratio: what a full opening
+        (Eq. 33's sat = 1) commands (:func:`pneutune.control.law.duty.pwm_inverse`)."""
+        top = self.ratio[-1]
+        return next(d for d, r in zip(self.duty, self.ratio, strict=True) if r >= top)
+
 
 class GainsConfig(_Strict):
     """Backstepping gains of Eqs. (13), (17), (20), (24), (26), (29)."""

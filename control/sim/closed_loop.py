@@ -139,6 +139,10 @@ class Metrics:
     theta_settled : bool
         ``theta_drift`` below :data:`THETA_SETTLED` (θ̂ has settled by the metric window, so
         the indices would not change much with a longer run).
+    full_open : float
+        Fraction of the metric window in which the controller commands a valve at its top duty
+        (Eq. 33's sat(Q_Ld / Q_L,F) = 1: the valves' whole flow) [-]. Where it is large the
+        error is set by the valves' flow, not by the gains (nan when not computed).
     """
 
     E_p_mm: float
@@ -153,6 +157,7 @@ class Metrics:
     status: str
     theta_drift: float = float("nan")
     theta_settled: bool = False
+    full_open: float = float("nan")
 
     def as_dict(self) -> dict[str, float | bool | str]:
         """Plain dict (the metrics object of DESIGN.md plus the extra fields)."""
@@ -209,8 +214,13 @@ def valve_modes(duties: np.ndarray) -> np.ndarray:
 
 def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensors: np.ndarray,
                     duties: np.ndarray, control_state: np.ndarray, theta_min: np.ndarray,
-                    theta_max: np.ndarray, x_min: float, x_max: float, status: str) -> Metrics:
-    """The indices of Sec. 5.1 over the last three periods, plus health checks."""
+                    theta_max: np.ndarray, x_min: float, x_max: float, status: str,
+                    duty_top: float | None = None) -> Metrics:
+    """The indices of Sec. 5.1 over the last three periods, plus health checks.
+
+    ``duty_top`` is the controller's largest duty (the top of its PWM curve), for
+    :attr:`Metrics.full_open`; None leaves that nan.
+    """
     n = sensors.shape[0]
     window = min(n, round(3.0 * scenario.period / Ts))
     nan = float("nan")
@@ -226,6 +236,9 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
     near = (x <= x_min + 2e-4) | (x >= x_max - 2e-4)
     span = np.maximum(np.asarray(theta_max) - np.asarray(theta_min), 1e-300)
     drift = float(np.max(np.abs(theta[-1] - theta[n - window]) / span))
+    full_open = nan
+    if duty_top is not None:
+        full_open = float(np.mean(np.max(duties[n - window:], axis=1) >= duty_top - 1e-9))
     return Metrics(
         E_p_mm=float(np.max(np.abs(e1)) * 1e3),
         E_rms_mm=float(np.sqrt(np.mean(e1**2)) * 1e3),
@@ -234,6 +247,7 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
         p_a_min_Pa=float(np.min(sensors[:, 1])), p_b_min_Pa=float(np.min(sensors[:, 2])),
         theta_in_bounds=in_bounds, end_stop_s=float(np.count_nonzero(near) * Ts),
         status=status, theta_drift=drift, theta_settled=drift < THETA_SETTLED,
+        full_open=full_open,
     )
 
 
@@ -350,7 +364,8 @@ def _result(run: PreparedRun, controller: ControllerConfig, code: int, sensors: 
     pcfg = run.plant
     metrics = compute_metrics(run.scenario, run.Ts, run.reference, sensors[:done], duties[:done],
                               cstate[:done], np.asarray(a.theta_min), np.asarray(a.theta_max),
-                              pcfg.rig.x_min, pcfg.rig.x_max, status)
+                              pcfg.rig.x_min, pcfg.rig.x_max, status,
+                              duty_top=controller.pwm.top_duty)
     return ClosedLoopResult(run.scenario, pcfg, controller, run.seed, run.Ts, run.reference,
                             sensors[:done], duties[:done], cstate[:done],
                             truth[:done] if truth is not None else None, metrics)
