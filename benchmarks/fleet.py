@@ -59,6 +59,7 @@ from pneutune.control.sim.scenarios import (
     smooth_square,
 )
 from pneutune.control.sim.truth import model_from_plant
+from pneutune.tune.report import FLOW_LIMITED  # the share of the window report.md flags
 
 KINDS = {
     "a": "identification run, 0.5 ms",
@@ -72,9 +73,6 @@ PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 SCORED = (*GROUPS["table1"], "disturbance-0.5hz")
 #: Issue 12's quality targets on the true plant [mm]: Table-1 scenarios, disturbance-0.5hz.
 QUALITY_MM, QUALITY_DISTURBANCE_MM = 0.20, 0.30
-#: A tuned E_p is marked † (flow-limited) when a valve is fully open for this share of the metric
-#: window (Metrics.full_open), as in tune's report.md.
-FLOW_LIMITED = 0.10
 
 
 def fleet_plant(index: int, seed: int = 0) -> PlantConfig:

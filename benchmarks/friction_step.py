@@ -30,8 +30,7 @@ import numpy as np
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.contracts.model import load_model
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.physics.friction import stribeck_peak, stribeck_stiffness
-from pneutune.control.plant.params import STEP_STIFFNESS
+from pneutune.control.plant.params import P_DTMIN, pack_plant
 from pneutune.control.sim.closed_loop import simulate_scenario
 from pneutune.control.sim.scenarios import SCENARIOS
 
@@ -47,10 +46,8 @@ STEEP = {
 
 
 def min_step(plant: PlantConfig) -> float:
-    """The earlier rule's step: ``min(sim.dt, 1.4 M / k_max)`` [s]."""
-    f = plant.friction
-    k = stribeck_stiffness(0.0, f.F_S, f.F_C, f.v_s, f.alpha, f.b_v, stribeck_peak(f.alpha))
-    return min(plant.sim.dt, STEP_STIFFNESS * plant.total_mass / k)
+    """The earlier rule's step: ``min(sim.dt, 1.4 M / k_max)`` [s] (the plant's ``P_DTMIN``)."""
+    return float(pack_plant(plant).vec[P_DTMIN])
 
 
 def steep_plants() -> dict[str, PlantConfig]:

@@ -218,7 +218,7 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
                     duty_top: float | None = None) -> Metrics:
     """The indices of Sec. 5.1 over the last three periods, plus health checks.
 
-    ``duty_top`` is the controller's largest duty (the top of its PWM curve), for
+    ``duty_top`` is the duty a full opening commands (``controller.pwm.top_duty``), for
     :attr:`Metrics.full_open`; None leaves that nan.
     """
     n = sensors.shape[0]
