@@ -2,19 +2,26 @@
 
 For fleet plants (:func:`fleet.fleet_plant`), this changes the true plant in one respect and
 tunes on it as ``fleet.py --kinds t`` does (the changed plant read as a model, ranges ±20 %,
-``tune --trials N --seed 1``), then scores the tuned controller and the paper's on the changed
-plant (noise seed 1000 + plant, as the fleet):
+``tune --trials N --seed S`` for each of ``--tune-seeds``), then scores the tuned controller
+and the paper's on the changed plant (noise seed 1000 + plant, as the fleet):
 
 * ``no-dead-zone``: every valve with ``min_pulse = 0`` and ``delay_off = delay_on``, so the
   effective open fraction equals the duty (no jump at the minimum pulse: any small average
   opening is available, which is what dithering across PWM periods would approximate);
 * ``immediate``: a latched plant with ``pwm_update: immediate`` (a new duty acts at once, not
-  at the next 16.7 ms period).
+  at the next 16.7 ms period);
+* ``dither``: the plant as it is, the controller tuned and scored with ``dead_zone: dither``
+  (``tune --dead-zone dither``: whole smallest pulses in some PWM periods, their mean the wanted
+  opening), what a controller can recover of the ``no-dead-zone`` row.
 
-Compare with the plant as it is (``fleet.py --kinds t``, docs/tuning.md, "What limits E_p").
+``as-is`` is the plant unchanged (what ``fleet.py --kinds t`` does, docs/tuning.md, "What limits
+E_p").
 
     .venv/bin/python benchmarks/ideal_valves.py [--plants 0,5,10,1] [--trials 200]
-        [--out reports/ideal-valves]
+        [--tune-seeds 1,2,3] [--only as-is,dither] [--out reports/ideal-valves]
+
+One tune is one draw of a noisy search (TPE from one seed; a run of 200 trials can land in a
+different basin): compare variants over several ``--tune-seeds``, not one.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 from fleet import PAPER, SCORED, fleet_plant, score
 
 from pneutune.control.constants import VALVES
@@ -35,43 +43,75 @@ from pneutune.control.sim.truth import model_from_plant
 
 
 def variants(plant: PlantConfig) -> dict[str, PlantConfig]:
-    """The changed plants (module docstring); ``immediate`` only for a latched plant."""
-    out = {"no-dead-zone": plant.with_updates({"valves": {
+    """The plants per variant (module docstring); ``immediate`` only for a latched plant."""
+    out = {"as-is": plant, "no-dead-zone": plant.with_updates({"valves": {
         n: {"min_pulse": 0.0, "delay_off": getattr(plant.valves, n).delay_on}
         for n in VALVES}})}
     if plant.rig.pwm_update == "latched":
         out["immediate"] = plant.with_updates({"rig": {"pwm_update": "immediate"}})
+    out["dither"] = plant
     return out
 
 
+def tune_and_score(i: int, tag: str, plant: PlantConfig, seed: int, trials: int,
+                   work: Path) -> dict[str, float] | None:
+    """``tune --seed seed`` on ``plant`` read as a model; E_p [mm] per scenario on ``plant``."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    save_model(model_from_plant(plant), work / "model.yaml")
+    tune = shutil.which("tune", path=os.path.dirname(sys.executable)) or "tune"
+    proc = subprocess.run([tune, "--model", str(work / "model.yaml"), "--trials", str(trials),
+                           "--out", str(work / "tune"), "--seed", str(seed),
+                           "--dead-zone", "dither" if tag == "dither" else "up", "--json"],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(f"plant {i} {tag} seed {seed}: tune exit {proc.returncode}: "
+              f"{proc.stderr.strip().splitlines()[-1:]}")
+        return None
+    tuned, _ = score(work / "tune" / "controller.yaml", plant, 1000 + i)
+    return tuned
+
+
 def main() -> int:
-    """Tune and score every plant x variant; print one row each."""
+    """Tune and score every plant x variant x tune seed; print one row each and the means."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plants", default="0,5,10,1", help="fleet plant indices (default 0,5,10,1)")
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
+    ap.add_argument("--tune-seeds", default="1", help="comma-separated tune --seed values; "
+                    "with several, a summary gives the mean and range per cell (default 1)")
     ap.add_argument("--out", default="reports/ideal-valves")
+    ap.add_argument("--only", default="", help="comma-separated variants to run (default all: "
+                    "as-is, no-dead-zone, immediate, dither)")
     args = ap.parse_args()
-    tune = shutil.which("tune", path=os.path.dirname(sys.executable)) or "tune"
+    seeds = [int(k) for k in args.tune_seeds.split(",")]
     print("E_p [mm] tuned / paper's gains: " + " | ".join(SCORED))
+    summary: list[tuple[str, np.ndarray]] = []
     for i in (int(k) for k in args.plants.split(",")):
         for tag, plant in variants(fleet_plant(i, args.seed)).items():
-            work = Path(args.out) / f"plant{i:02d}-{tag}"
-            shutil.rmtree(work, ignore_errors=True)
-            work.mkdir(parents=True)
-            save_model(model_from_plant(plant), work / "model.yaml")
-            proc = subprocess.run([tune, "--model", str(work / "model.yaml"), "--trials",
-                                   str(args.trials), "--out", str(work / "tune"), "--seed", "1",
-                                   "--json"], capture_output=True, text=True)
-            if proc.returncode != 0:
-                print(f"plant {i} {tag}: tune exit {proc.returncode}: "
-                      f"{proc.stderr.strip().splitlines()[-1:]}")
+            if args.only and tag not in args.only.split(","):
                 continue
-            tuned, _ = score(work / "tune" / "controller.yaml", plant, 1000 + i)
             paper, _ = score(PAPER, plant, 1000 + i)
-            print(f"plant {i} ({plant.rig.pwm_update if tag != 'immediate' else 'latched'}) "
-                  f"{tag}: " + " | ".join(f"{tuned[s]:.2f} / {paper[s]:.2f}" for s in SCORED),
-                  flush=True)
+            label = f"plant {i} ({plant.rig.pwm_update if tag != 'immediate' else 'latched'}) {tag}"
+            rows = []
+            for seed in seeds:
+                tuned = tune_and_score(i, tag, plant, seed, args.trials,
+                                       Path(args.out) / f"plant{i:02d}-{tag}-seed{seed}")
+                if tuned is None:
+                    continue
+                rows.append([tuned[s] for s in SCORED])
+                print(f"{label} seed {seed}: "
+                      + " | ".join(f"{tuned[s]:.2f} / {paper[s]:.2f}" for s in SCORED),
+                      flush=True)
+            if rows:
+                summary.append((label, np.array(rows)))
+    if len(seeds) > 1:
+        print(f"\nmean (min-max) over tune seeds {args.tune_seeds}; last column: the mean of the "
+              "largest E_p per run")
+        for label, a in summary:
+            cells = [f"{a[:, j].mean():.2f} ({a[:, j].min():.2f}-{a[:, j].max():.2f})"
+                     for j in range(a.shape[1])]
+            print(f"{label}: " + " | ".join(cells) + f" | {a.max(axis=1).mean():.2f}")
     return 0
 
 

@@ -271,7 +271,8 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     model_cfg, model_sha, name = _load(model)
     try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
         controller_from_params(model_cfg, search_space(
-            model_cfg, settings.objective.variant).paper_params())
+            model_cfg, settings.objective.variant).paper_params(),
+            dead_zone=settings.objective.dead_zone)
     except ConfigError as exc:
         raise ConfigError(name, exc.key, "cannot make a controller.yaml from this model: "
                           f"{exc.message}") from None
@@ -286,7 +287,8 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     objective_settings = dataclasses.replace(settings.objective, box=feas.box)
     study_name = settings.study or default_study_name(model_sha, settings.seed,
                                                       settings.objective.variant,
-                                                      settings.sampler)
+                                                      settings.sampler,
+                                                      settings.objective.dead_zone)
     jobs = settings.jobs if settings.jobs is not None else (
         min(available_cpus(), objective_settings.n_draws) if settings.workers == 1 else 1)
     spec = StudySpec(storage, study_name, settings.seed, settings.trials, settings.workers,
@@ -303,7 +305,8 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     best = study.best_trial
     prov = provenance(model_sha, study_name, best.number, float(best.value), settings.seed,
                       feas.notes())
-    tuned = controller_from_params(model_cfg, best.params, prov)
+    tuned = controller_from_params(model_cfg, best.params, prov,
+                                   dead_zone=settings.objective.dead_zone)
     paper = load_controller(PAPER_CONTROLLER)
     objective = TuneObjective(model_cfg, settings.seed, objective_settings, jobs=jobs)
     comp = compare(objective, tuned, paper)

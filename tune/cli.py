@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from tqdm import tqdm
 
 from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.contracts.controller import DEAD_ZONE_MODES
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
 from .api import DEFAULT_OUT, TuneSettings, tune
@@ -109,6 +110,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                              f"{CMAES_WARM_START} complete trials, then CMA-ES started from "
                              "their best (needs: pip install 'pneutune[cmaes]'); a study "
                              "keeps its sampler (default study name gets -cmaes)")
+    parser.add_argument("--dead-zone", choices=DEAD_ZONE_MODES, default="up",
+                        help="how the tuned controller commands a small opening inside the "
+                             "valves' dead zone: up (default: at least the smallest pulse that "
+                             "opens the valve, every PWM period) or dither (whole smallest "
+                             "pulses in some periods, their mean the wanted opening). Dither "
+                             "measured worse on every fleet plant tried (docs/tuning.md); try it "
+                             "on a rig whose smallest pulse is large (default study name gets "
+                             "-dither)")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (progress and prose on stderr)")
     args = parser.parse_args(argv)
@@ -116,7 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         trials=args.trials, out=args.out, storage=args.storage, study=args.study,
         workers=args.workers, jobs=args.jobs, seed=args.seed, sampler=args.sampler,
         objective=ObjectiveSettings(scenarios=_scenarios(args.scenarios), n_draws=args.draws,
-                                    duration=args.duration, variant=args.variant))
+                                    duration=args.duration, variant=args.variant,
+                                    dead_zone=args.dead_zone))
     bar = tqdm(total=args.trials, desc="tune", unit="trial", file=sys.stderr, disable=None,
                leave=False)
 

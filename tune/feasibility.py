@@ -50,7 +50,7 @@ from pneutune.control.sim.scenarios import Scenario
 
 from .objective import Evaluation, ObjectiveSettings, TuneObjective
 from .plants import PlantDraw
-from .space import controller_from_params, search_space
+from .space import search_space
 
 #: Controllers tried on the nominal plant when the paper's gains fail it.
 N_ALTERNATIVES = 24
@@ -200,7 +200,7 @@ def _reference(model: ModelConfig, objective: TuneObjective, seed: int
     nominal = objective.draws[0]
 
     def tracks(params: dict[str, float]) -> str | None:
-        ctl = controller_from_params(model, params)
+        ctl = objective.controller(params)
         vec = pack(ctl)
         for sc in objective.scenarios:
             res = objective.simulate(ctl, sc, nominal, vec)
@@ -282,7 +282,7 @@ def check_feasibility(model: ModelConfig, seed: int, settings: ObjectiveSettings
     box = settings.box_dict()
     objective = TuneObjective(model, seed, settings)
     label, ref_params, paper_failure = _reference(model, objective, seed)
-    ctl = controller_from_params(model, ref_params)
+    ctl = objective.controller(ref_params)
     steps: list[Narrowing] = []
     held: list[str] = []
     for rnd in itertools.count():

@@ -45,7 +45,7 @@ import numba
 import numpy as np
 import optuna
 
-from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.contracts.controller import DEAD_ZONE_MODES, ControllerConfig
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.errors import PneutuneError
 from pneutune.control.law.layout import pack
@@ -105,6 +105,9 @@ class ObjectiveSettings:
     variant : str
         What is tuned: ``modified_darc`` (default) or ``pid`` (:func:`pneutune.tune.space.
         search_space`).
+    dead_zone : str
+        The tuned controller's ``dead_zone``: ``up`` (default) or ``dither`` (contract 4;
+        fixed for the study, not searched).
     box : tuple of (str, float, float)
         Narrower ranges of plant coordinates, ``(key, lo, hi)``
         (:func:`pneutune.tune.plants.uncertainty_box`); set by the feasibility check
@@ -122,6 +125,7 @@ class ObjectiveSettings:
     pressure_weight: float = 1.0
     end_stop_weight: float = 2.0
     variant: str = "modified_darc"
+    dead_zone: str = "up"
     box: tuple[tuple[str, float, float], ...] = ()
 
     def __post_init__(self) -> None:
@@ -141,6 +145,9 @@ class ObjectiveSettings:
         if self.variant not in VARIANTS:
             raise TuneError(f"--variant must be one of {', '.join(VARIANTS)}, got "
                             f"{self.variant!r}")
+        if self.dead_zone not in DEAD_ZONE_MODES:
+            raise TuneError(f"--dead-zone must be one of {', '.join(DEAD_ZONE_MODES)}, got "
+                            f"{self.dead_zone!r}")
         for key, lo, hi in self.box:
             if not lo <= hi:
                 raise TuneError(f"box {key}: lo <= hi must hold, got lo={lo}, hi={hi}")
@@ -150,12 +157,14 @@ class ObjectiveSettings:
         return {key: (lo, hi) for key, lo, hi in self.box}
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain data (JSON-able); ``box`` only when set and ``variant`` only when not the
-        default (studies made before either existed compare equal)."""
+        """Plain data (JSON-able); ``box`` only when set, ``variant`` and ``dead_zone`` only
+        when not the default (studies made before any of them existed compare equal)."""
         out = dataclasses.asdict(self)
         out["scenarios"] = list(self.scenarios)
         if self.variant == "modified_darc":
             del out["variant"]
+        if self.dead_zone == "up":
+            del out["dead_zone"]
         if self.box:
             out["box"] = [list(b) for b in self.box]
         else:
@@ -429,7 +438,7 @@ class TuneObjective:
 
     def controller(self, params: dict[str, float]) -> ControllerConfig:
         """The controller of a parameter set on this model."""
-        return controller_from_params(self.model, params)
+        return controller_from_params(self.model, params, dead_zone=self.settings.dead_zone)
 
     def __call__(self, trial: optuna.Trial) -> float:
         """Score a trial (raises :class:`optuna.TrialPruned` when pruned or failed)."""

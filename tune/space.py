@@ -22,7 +22,9 @@ What is searched (14 parameters, named by their controller.yaml key path; docs/t
 
 Every range spans one to three decades around the paper's value and is sampled on a log scale.
 Not searched: θ_min, θ_max, θ_0 (from model.yaml), the rate limits θ̇_M and ``min_ref_speed``
-(the paper's Sec. 5.1/5.3 values), ``position_feedback`` (``measured``, docs/controller.md).
+(the paper's Sec. 5.1/5.3 values), ``position_feedback`` (``measured``, docs/controller.md),
+``dead_zone`` (``up`` unless ``tune --dead-zone dither``: fixed for a study, not searched, because
+dithering measured worse on every fleet plant tried, docs/tuning.md).
 """
 
 from __future__ import annotations
@@ -217,7 +219,8 @@ def _inside(lo: float, value: float, hi: float) -> float:
 
 
 def controller_dict(model: ModelConfig, params: Mapping[str, float],
-                    provenance: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                    provenance: Mapping[str, Any] | None = None,
+                    dead_zone: str = "up") -> dict[str, Any]:
     """The controller.yaml data for ``params`` on ``model`` (not yet validated).
 
     The rig, the valves' C and b (for the fully-open flows of Eq. 32), the PWM curve and the θ box
@@ -233,6 +236,8 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
         A value for every name of :func:`search_space`.
     provenance : mapping, optional
         The ``provenance`` block.
+    dead_zone : str
+        The controller's ``dead_zone`` (``up`` or ``dither``; ``tune --dead-zone``).
 
     Returns
     -------
@@ -253,6 +258,7 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
         "schema": CONTROLLER_SCHEMA,
         "variant": variant,
         "position_feedback": "measured",
+        "dead_zone": dead_zone,
         "rig": rig.model_dump(),
         "valves": {name: {"C": v.C, "b": v.b}
                    for name, v in zip(("a_in", "a_out", "b_in", "b_out"),
@@ -280,7 +286,8 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
 
 
 def controller_from_params(model: ModelConfig, params: Mapping[str, float],
-                           provenance: Mapping[str, Any] | None = None) -> ControllerConfig:
+                           provenance: Mapping[str, Any] | None = None,
+                           dead_zone: str = "up") -> ControllerConfig:
     """A validated :class:`ControllerConfig` for ``params`` on ``model`` (see
     :func:`controller_dict`).
 
@@ -292,7 +299,7 @@ def controller_from_params(model: ModelConfig, params: Mapping[str, float],
     clean = {k: float(v) for k, v in params.items()}
     if not all(math.isfinite(v) for v in clean.values()):
         raise ValueError(f"parameters must be finite, got {clean}")
-    return validate_model(ControllerConfig, controller_dict(model, clean, provenance),
+    return validate_model(ControllerConfig, controller_dict(model, clean, provenance, dead_zone),
                           "<tune>")
 
 

@@ -92,12 +92,15 @@ class WorkerError(RuntimeError):
 
 
 def default_study_name(model_sha256: str, seed: int, variant: str = "modified_darc",
-                       sampler: str = DEFAULT_SAMPLER) -> str:
+                       sampler: str = DEFAULT_SAMPLER, dead_zone: str = "up") -> str:
     """``tune-<sha256[:12]>-seed<S>`` (``-pid`` appended for the pid variant, ``-cmaes`` for a
-    sampler other than TPE): the same command resumes the same study."""
+    sampler other than TPE, ``-dither`` for ``--dead-zone dither``): the same command resumes
+    the same study."""
     suffix = "" if variant == "modified_darc" else f"-{variant}"
     if sampler != DEFAULT_SAMPLER:
         suffix += f"-{sampler}"
+    if dead_zone != "up":
+        suffix += f"-{dead_zone}"
     return f"tune-{model_sha256[:12]}-seed{seed}{suffix}"
 
 

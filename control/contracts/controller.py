@@ -4,7 +4,8 @@ Strict pydantic models (unknown keys rejected, no type coercion, ranges, θ_min 
 vector lengths, a monotone PWM curve); :func:`load_controller` turns any failure into one
 :class:`~pneutune.control.errors.ConfigError` naming the key path and the rule.
 A controller.yaml is complete: there is no merge over defaults, except for the keys this project
-adds to contract 4 (``position_feedback``, ``pid``), which have documented defaults.
+adds to contract 4 (``position_feedback``, ``dead_zone``, ``pid``), which have documented
+defaults.
 
 The flat vector the compiled step reads is the law's business: :mod:`pneutune.control.law.layout`.
 """
@@ -30,6 +31,9 @@ POS_FB_MEASURED, POS_FB_FILTERED = 0, 1
 #: Which dx2/dt enters the calculable dF_pd/dt of original_darc (``cfg[CFG_ORIG_ACCEL]``).
 ORIGINAL_DARC_ACCEL: tuple[str, ...] = ("filtered", "model")
 ORIG_ACCEL_FILTERED, ORIG_ACCEL_MODEL = 0, 1
+#: How a wanted opening inside the PWM curve's dead zone is commanded (``cfg[CFG_DZ_MODE]``).
+DEAD_ZONE_MODES: tuple[str, ...] = ("up", "dither")
+DZ_UP, DZ_DITHER = 0, 1
 #: Largest number of points of the PWM curve.
 PWM_MAX_POINTS: int = 128
 
@@ -246,6 +250,13 @@ class ControllerConfig(_Strict):
         "original_darc (docs/original_darc.md): 'filtered' (the motion Kalman filter's "
         "acceleration) or 'model' ((F_p + θ̂2 - θ̂3 x2 - θ̂4 S_f(x2))/θ̂1). Unused by other "
         "variants.")
+    dead_zone: Literal["up", "dither"] = Field(
+        "up", description="Added by pneutune: how a wanted open fraction below the PWM curve's "
+        "dead-zone knee (the top of its steep rise at the minimum pulse) is commanded: 'up' (the "
+        "curve's inverse, at least the smallest pulse that opens the valve, every PWM period) or "
+        "'dither' (whole smallest pulses in some PWM periods and none in the others, so that "
+        "their mean over periods is the wanted fraction: a first-order sigma-delta, "
+        "control/law/duty.py, docs/tuning.md)")
     rig: RigConfig
     valves: ControllerValves
     pwm: PwmCurve

@@ -29,7 +29,8 @@ One step, every Ts (the names are the paper's):
 6. Step 2 (Eqs. 26, 29): Q_Ld = -e2 r2/r3 + n A_a² x2 p_a/V_a + n A_b² x2 p_b/V_b - A_a θ̂5
    + A_b θ̂6 + dF_pd - k3 e3 - h3² e3/(4 ε3), V_a, V_b of Eq. (6) at x1 (clipped to the stroke).
 7. Step 3 (Eqs. 32-33 corrected, :mod:`pneutune.control.law.duty`): Q_L,F from the measured
-   pressures, the five cases, the inverse PWM curve.
+   pressures, the five cases, the inverse PWM curve; with ``dead_zone: dither`` the openings
+   below the curve's dead-zone knee become whole pulses in some PWM periods (a sigma-delta).
 
 ``pid``: step 1 runs for v̂ and the logs; Q_Ld = -(kp e1 + ki ∫e1 + kd (v̂ - v_r)), then step 7.
 
@@ -45,6 +46,7 @@ import numpy as np
 from numba import njit
 
 from pneutune.control.contracts.controller import (
+    DZ_DITHER,
     ORIG_ACCEL_MODEL,
     POS_FB_FILTERED,
     VARIANT_DIRECT_DIFF,
@@ -53,12 +55,15 @@ from pneutune.control.contracts.controller import (
     VARIANT_PID,
     ControllerConfig,
 )
-from pneutune.control.law.duty import duties_into, fully_open_q_l
+from pneutune.control.law.duty import dither_into, duties_into, fully_open_q_l
 from pneutune.control.law.kalman import kf_predict_into, kf_update_into
 from pneutune.control.law.layout import (
     CFG_A_A,
     CFG_A_B,
     CFG_A_R,
+    CFG_DZ_DUTY,
+    CFG_DZ_MODE,
+    CFG_DZ_RATIO,
     CFG_EPS2,
     CFG_EPS3,
     CFG_GAMMA,
@@ -89,6 +94,7 @@ from pneutune.control.law.layout import (
     CFG_POS_FB,
     CFG_PWM_DUTY,
     CFG_PWM_N,
+    CFG_PWM_PERIOD,
     CFG_PWM_RATIO,
     CFG_R2,
     CFG_R3,
@@ -144,7 +150,10 @@ S_THETA_DOT = 40     #: effective dθ̂/dt of this step (6)
 S_TAU = 46           #: τ (6)
 S_U = 52             #: effective open fractions wanted (4), before the PWM inverse
 S_F_P = 56           #: F_p [N]
-S_WORK = 57          #: scratch for the Kalman kernels (21); no meaning between steps
+S_DZ_ACC = 57        #: dead-zone sigma-delta accumulators (4) [open fraction x periods]
+S_DZ_PULSE = 61      #: 1 if the valve has its dead-zone pulse in this PWM period (4)
+S_DZ_PERIOD = 65     #: index of the last PWM period decided by the dither (-1 before)
+S_WORK = 66          #: scratch for the Kalman kernels (21); no meaning between steps
 STATE_SIZE = S_WORK + 21
 
 #: Fields of the ``/control/state`` log topic (contract 1) and their state indices;
@@ -312,6 +321,10 @@ def step_into(state: np.ndarray, meas: np.ndarray, cfg: np.ndarray,
     m = int(cfg[CFG_PWM_N])
     case = duties_into(q_ld, q_lf, cfg[CFG_PWM_DUTY:CFG_PWM_DUTY + m],
                        cfg[CFG_PWM_RATIO:CFG_PWM_RATIO + m], state[S_U:S_U + 4], duties_out)
+    if int(cfg[CFG_DZ_MODE]) == DZ_DITHER:
+        dither_into(state[S_U:S_U + 4], duties_out, meas[M_T], Ts, cfg[CFG_PWM_PERIOD],
+                    cfg[CFG_DZ_DUTY], cfg[CFG_DZ_RATIO], state[S_DZ_ACC:S_DZ_ACC + 4],
+                    state[S_DZ_PULSE:S_DZ_PULSE + 4], state[S_DZ_PERIOD:S_DZ_PERIOD + 1])
 
     state[S_F_PD_PREV] = F_pd
     state[S_A_R_PREV] = a_r
@@ -395,6 +408,7 @@ def init_state(cfg: ControllerConfig | np.ndarray, x0: float, p_a0: float,
     s[S_F_PD] = F_p0
     s[S_F_PD_PREV] = F_p0
     s[S_X_HAT] = x0
+    s[S_DZ_PERIOD] = -1.0
     return s
 
 
@@ -411,7 +425,8 @@ def state_view(state: np.ndarray) -> dict[str, Any]:
     -------
     dict
         ``theta_hat`` (6), ``x_motion`` (3), ``P_motion`` (3x3), ``x_force`` (2),
-        ``P_force`` (2x2), ``theta_dot`` (6), ``tau`` (6), ``u`` (4), every
+        ``P_force`` (2x2), ``theta_dot`` (6), ``tau`` (6), ``u`` (4), ``dither_acc`` and
+        ``dither_pulse`` (4 each, ``dead_zone: dither``), every
         :data:`CONTROL_STATE_FIELDS` entry, and ``F_p``, ``Q_LF``, ``case``, ``pid_integral``,
         ``n_steps``, ``status``.
     """
@@ -425,6 +440,8 @@ def state_view(state: np.ndarray) -> dict[str, Any]:
         "theta_dot": s[S_THETA_DOT:S_THETA_DOT + 6].copy(),
         "tau": s[S_TAU:S_TAU + 6].copy(),
         "u": s[S_U:S_U + 4].copy(),
+        "dither_acc": s[S_DZ_ACC:S_DZ_ACC + 4].copy(),
+        "dither_pulse": s[S_DZ_PULSE:S_DZ_PULSE + 4].copy(),
     }
     for name, idx in CONTROL_STATE_FIELDS.items():
         out[name] = float(s[idx])

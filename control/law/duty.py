@@ -32,6 +32,21 @@ PWM inverse
     ratio_j at the minimum pulse) the duty of the jump, so a small demand gives the smallest
     pulse that opens the valve rather than a pulse that never opens it; above the curve's
     largest ratio the smallest duty that reaches it (saturation: no longer pulse than needed).
+Dead zone: ``up`` or ``dither`` (contract 4 ``dead_zone``)
+    A wanted fraction ``0 < u < r_k`` below the curve's dead-zone knee ``(d_k, r_k)``
+    (:func:`dead_zone_knee`) cannot be delivered in one PWM period: a pulse shorter than the
+    valve's minimum opens it not at all or unreliably. ``up`` commands the inverse above (the
+    smallest pulse that opens the valve, or a duty on the steep rise of an identified curve),
+    every period: the valve passes ``r_k`` or more however small ``u`` is. ``dither``
+    (:func:`dither_into`) commands either the knee's duty ``d_k`` or 0 for a whole PWM period,
+    chosen by a first-order sigma-delta per valve, so that the open fraction averaged over
+    periods is ``u``: at each period start the accumulator gains ``u`` and, if it reaches
+    ``r_k / 2``, the period gets the pulse and the accumulator loses ``r_k``. A valve that was
+    not wanted open starts with the accumulator at ``r_k / 2``, so its first wanted period gets a
+    pulse at once (what ``up`` does) and the later ones the mean. The carrier is taken to start
+    at the controller's t = 0 (the plant's convention, :mod:`pneutune.control.plant.valves`);
+    with another phase a decision still holds for one whole carrier period, so each period still
+    gets one decision (off by at most one period at the edges of a dithered stretch).
 """
 
 from __future__ import annotations
@@ -40,6 +55,10 @@ import numpy as np
 from numba import njit
 
 from pneutune.control.physics.flow import iso6358_flow
+
+#: A segment of the PWM curve is part of the dead-zone rise when it is at least this many times
+#: steeper than the chord from (0, 0) to the curve's top (:func:`dead_zone_knee`).
+KNEE_STEEPNESS: float = 2.0
 
 #: Eq. (33) cases, numbered as in the docstring.
 CASE_A_FILL_NO_FLOW = 1
@@ -203,3 +222,107 @@ def duties_into(q_ld: float, q_lf: float, duty_pts: np.ndarray, ratio_pts: np.nd
     return case
 
 
+
+
+def dead_zone_knee(duty_pts: np.ndarray, ratio_pts: np.ndarray) -> tuple[float, float]:
+    """The top ``(d_k, r_k)`` of the PWM curve's dead-zone rise, or ``(0, 0)`` if it has none.
+
+    The rise is the steepest segment ending at or below half the curve's top ratio (a vertical
+    step, as in a curve computed from the valves, or the steep segment of a curve identified on
+    a duty grid), extended over the steep segments that follow it; "steep" is
+    :data:`KNEE_STEEPNESS` times the chord slope. Below ``r_k`` the valve cannot pass a steady
+    fraction in every period (module docstring).
+
+    Parameters
+    ----------
+    duty_pts, ratio_pts : (m,) array_like
+        The PWM curve (non-decreasing, from (0, 0)).
+
+    Returns
+    -------
+    d_k : float
+        Duty at the knee (0..1).
+    r_k : float
+        Effective open fraction at the knee (0..1); 0 when the curve has no steep rise.
+    """
+    d = np.asarray(duty_pts, dtype=np.float64)
+    r = np.asarray(ratio_pts, dtype=np.float64)
+    top = float(r[-1])
+    top_duty = float(d[np.argmax(r >= top)])
+    if not top > 0.0 or not top_duty > 0.0:
+        return 0.0, 0.0
+    chord = top / top_duty
+    dd = np.diff(d)
+    dr = np.diff(r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(dd > 0.0, dr / np.where(dd > 0.0, dd, 1.0),
+                         np.where(dr > 0.0, np.inf, 0.0))
+    low = r[1:] <= 0.5 * top
+    if not low.any():
+        return 0.0, 0.0
+    steep = slope >= KNEE_STEEPNESS * chord
+    cand = np.where(low & steep, slope, -1.0)
+    j = int(np.argmax(cand))
+    if cand[j] < 0.0:
+        return 0.0, 0.0
+    while j + 1 < len(steep) and steep[j + 1] and low[j + 1]:
+        j += 1
+    return float(d[j + 1]), float(r[j + 1])
+
+
+@njit(cache=True, error_model="numpy")
+def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: float,
+                d_k: float, r_k: float, acc: np.ndarray, pulse: np.ndarray,
+                last: np.ndarray) -> None:
+    """Dead-zone dithering (module docstring): overwrite the duties of valves with 0 < u < r_k.
+
+    Parameters
+    ----------
+    u : (4,) float64
+        Wanted effective open fractions of Eq. (33).
+    duties : (4,) float64
+        The duties from :func:`duties_into`; those of valves in the dead zone are replaced by
+        ``d_k`` or 0.
+    t : float
+        Time of this sample [s]; its duties hold over ``[t, t + Ts)``.
+    Ts : float
+        Control period [s].
+    period : float
+        PWM carrier period [s].
+    d_k, r_k : float
+        The dead-zone knee (:func:`dead_zone_knee`); ``r_k <= 0`` leaves ``duties`` unchanged.
+    acc : (4,) float64
+        Sigma-delta accumulators [open fraction x periods], updated in place.
+    pulse : (4,) float64
+        1 if the valve has its pulse in the current carrier period, else 0; updated.
+    last : (1,) float64
+        Index of the last carrier period decided (-1 before the first); updated.
+    """
+    if not r_k > 0.0:
+        return
+    n_next = np.floor((t + Ts) / period - 1.0e-9)
+    m = n_next - last[0]
+    if m > 0.0:
+        if last[0] < 0.0:  # first decision: every valve as if it had been closed
+            m = 1.0
+            for i in range(4):
+                acc[i] = 0.5 * r_k
+        last[0] = n_next
+        for i in range(4):
+            ui = u[i]
+            if not ui > 0.0:
+                acc[i] = 0.5 * r_k
+                pulse[i] = 0.0
+            elif ui >= r_k:
+                pulse[i] = 1.0
+            else:
+                acc[i] += m * ui
+                if acc[i] >= 0.5 * m * r_k:
+                    pulse[i] = 1.0
+                    acc[i] -= m * r_k
+                else:
+                    pulse[i] = 0.0
+    for i in range(4):
+        ui = u[i]
+        if ui > 0.0 and ui < r_k:
+            duties[i] = d_k if pulse[i] > 0.5 else 0.0

@@ -15,12 +15,14 @@ from __future__ import annotations
 import numpy as np
 
 from pneutune.control.contracts.controller import (
+    DEAD_ZONE_MODES,
     ORIGINAL_DARC_ACCEL,
     POSITION_FEEDBACK,
     PWM_MAX_POINTS,
     VARIANTS,
     ControllerConfig,
 )
+from pneutune.control.law.duty import dead_zone_knee
 from pneutune.control.law.kalman import force_model, motion_model, process_cov
 
 #: The slots in order: (name, width, meaning). SI units.
@@ -75,6 +77,10 @@ SLOTS: tuple[tuple[str, int, str], ...] = (
     ("CFG_PWM_N", 1, "number of PWM curve points m"),
     ("CFG_PWM_DUTY", PWM_MAX_POINTS, "duty[:m]"),
     ("CFG_PWM_RATIO", PWM_MAX_POINTS, "ratio[:m]"),
+    ("CFG_PWM_PERIOD", 1, "PWM carrier period 1/rig.pwm_hz [s]"),
+    ("CFG_DZ_MODE", 1, "dead_zone code (DEAD_ZONE_MODES)"),
+    ("CFG_DZ_DUTY", 1, "duty at the PWM curve's dead-zone knee (duty.dead_zone_knee)"),
+    ("CFG_DZ_RATIO", 1, "open fraction at the knee; 0: the curve has no dead zone"),
 )
 
 CFG_LAYOUT, CFG_VARIANT, CFG_POS_FB, CFG_ORIG_ACCEL = 0, 1, 2, 3
@@ -88,6 +94,8 @@ CFG_KM_A, CFG_KM_WQW, CFG_KM_H, CFG_KF_A, CFG_KF_WQW, CFG_KF_H = 68, 77, 86, 89,
 CFG_PID_KP, CFG_PID_KI, CFG_PID_KD, CFG_PID_IMAX, CFG_PWM_N = 99, 100, 101, 102, 103
 CFG_PWM_DUTY = 104
 CFG_PWM_RATIO = CFG_PWM_DUTY + PWM_MAX_POINTS
+CFG_PWM_PERIOD = CFG_PWM_RATIO + PWM_MAX_POINTS
+CFG_DZ_MODE, CFG_DZ_DUTY, CFG_DZ_RATIO = CFG_PWM_PERIOD + 1, CFG_PWM_PERIOD + 2, CFG_PWM_PERIOD + 3
 
 
 def _offsets() -> int:
@@ -162,4 +170,7 @@ def pack(cfg: ControllerConfig) -> np.ndarray:
     v[CFG_PWM_N] = m
     v[CFG_PWM_DUTY:CFG_PWM_DUTY + m] = cfg.pwm.duty
     v[CFG_PWM_RATIO:CFG_PWM_RATIO + m] = cfg.pwm.ratio
+    v[CFG_PWM_PERIOD] = rig.pwm_period
+    v[CFG_DZ_MODE] = DEAD_ZONE_MODES.index(cfg.dead_zone)
+    v[CFG_DZ_DUTY], v[CFG_DZ_RATIO] = dead_zone_knee(cfg.pwm.duty, cfg.pwm.ratio)
     return v
