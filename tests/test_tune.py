@@ -383,3 +383,16 @@ def test_progress_bar_goes_to_stderr(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert code == 0
     assert len(seen) == 1 and "3/3" in stderr
     assert math.isfinite(json.loads(stdout)["best"]["objective"])
+
+
+def test_report_names_the_paper_controller_as_users_see_it(tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """From a checkout report.md names ``data/controller-paper.yaml`` (the README's and the
+    Makefile's name, a link to the packaged file); elsewhere the packaged file itself."""
+    from pneutune.control.contracts.controller import PAPER_CONTROLLER
+    from pneutune.tune.api import paper_path
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    assert paper_path() == "data/controller-paper.yaml"
+    monkeypatch.chdir(tmp_path)
+    assert (tmp_path / paper_path()).resolve() == PAPER_CONTROLLER.resolve()

@@ -211,6 +211,18 @@ def provenance(model_sha256: str, study: str, trial: int, value: float, seed: in
     return prov
 
 
+def paper_path() -> str:
+    """How report.md names the paper's controller: ``data/controller-paper.yaml`` when run from
+    a checkout (where that link points at the packaged file), else the packaged file's path."""
+    link = Path("data") / "controller-paper.yaml"
+    try:
+        if link.resolve() == PAPER_CONTROLLER.resolve():
+            return link.as_posix()
+    except OSError:
+        pass
+    return os.path.relpath(PAPER_CONTROLLER)
+
+
 def failure_summary(study: optuna.Study) -> str:
     """Why the trials of a study failed, most frequent first (``user_attrs["failure"]``)."""
     reasons: dict[str, int] = {}
@@ -314,7 +326,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     report_info = {
         "model": name, "model_sha256": model_sha, "storage": redact_url(storage),
         "n_trials": settings.trials, "counts": counts, "controller": paths["controller"],
-        "paper_path": os.path.relpath(PAPER_CONTROLLER), "plant_nominal": paths["plant_nominal"],
+        "paper_path": paper_path(), "plant_nominal": paths["plant_nominal"],
         "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
         "sampler": describe(settings.sampler),
     }
