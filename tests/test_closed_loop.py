@@ -13,7 +13,7 @@ import pytest
 
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.closed_loop import simulate_scenario, sustained_runs
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, smooth_square
 
 PAPER_YAML = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
@@ -173,7 +173,9 @@ def test_full_open_marks_tracking_the_valves_cannot_deliver(paper):
     (0.94 in data/controller-paper.yaml: the first duty at the curve's largest ratio). Measured:
     the paper's rig tracks sine-0.75hz with it at 1 % (E_p 0.32 mm); with every valve's C at
     0.7x it is 52 % and E_p 2.06 mm, the 0.75 Hz sine's peak speed being more than the weaker
-    valves can deliver, whatever the gains. sine-0.5hz on the weak valves: 0 %, E_p 0.30 mm."""
+    valves can deliver, whatever the gains. sine-0.5hz on the weak valves: 0 %, E_p 0.30 mm.
+    Metrics.flow_limited, the part of that spent in full openings of 0.1 s or more: 50 % on the
+    weak valves (the openings last), 0 % on the rig."""
     assert paper.pwm.top_duty == pytest.approx(0.94)
     base = PlantConfig()
     weak = base.with_updates({"valves": {
@@ -184,3 +186,23 @@ def test_full_open_marks_tracking_the_valves_cannot_deliver(paper):
     assert nominal.full_open < 0.05 and nominal.E_p_mm < 0.5
     assert limited.full_open > 0.4 and limited.E_p_mm > 1.5
     assert slow.full_open < 0.05 and slow.E_p_mm < 0.5
+    assert nominal.flow_limited == 0.0 and slow.flow_limited == 0.0
+    assert limited.flow_limited == pytest.approx(0.50, abs=0.05)
+
+
+def test_flow_limited_counts_sustained_full_openings_only():
+    """A valve held at full opening for 0.3 s counts (all its 75 samples of 4 ms); two valve
+    pairs alternating at full opening every 20 ms (chatter, as a too aggressive tuning does on
+    fleet plant 1: full_open 69 %, flow_limited 6 %) do not, though some valve is always fully
+    open. Values by construction."""
+    n = 750
+    held = np.zeros((n, 4), dtype=bool)
+    held[100:175, 1] = True                                # 75 samples = 0.3 s, a_out
+    held[400:420, 0] = True                                # 20 samples = 0.08 s, too short
+    assert sustained_runs(held, 25).sum() == 75
+    chatter = np.zeros((n, 4), dtype=bool)
+    pair = (np.arange(n) // 5) % 2 == 0                    # 5 samples = 20 ms per mode
+    chatter[pair, 0] = chatter[pair, 3] = True
+    chatter[~pair, 1] = chatter[~pair, 2] = True
+    assert chatter.any(axis=1).all()
+    assert not sustained_runs(chatter, 25).any()

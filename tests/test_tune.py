@@ -396,3 +396,27 @@ def test_report_names_the_paper_controller_as_users_see_it(tmp_path: Path,
     assert paper_path() == "data/controller-paper.yaml"
     monkeypatch.chdir(tmp_path)
     assert (tmp_path / paper_path()).resolve() == PAPER_CONTROLLER.resolve()
+
+
+def test_report_tells_the_valves_limit_from_chattering_gains() -> None:
+    """report.md's verdict per scenario (tune/report.py::valve_verdict), on the metrics measured
+    with benchmarks' fleet plants: plant 4's tuned controller on sine-0.75hz holds a valve fully
+    open in long openings (flow_limited 0.34 of the window, E_p 1.59 vs the paper's 1.61 mm):
+    the valves; plant 1 tuned with seed 5 is fully open 69 % of the window in bursts
+    (flow_limited 0.06) and worse than the paper's gains (1.88 vs 1.24 mm): the gains; a good
+    tune on plant 1 (1 %, 0.43 mm): nothing to say."""
+    from pneutune.tune.report import valve_verdict
+
+    paper4 = {"E_p_mm": 1.61, "full_open": 0.38, "flow_limited": 0.33}
+    assert valve_verdict({"E_p_mm": 1.59, "full_open": 0.43, "flow_limited": 0.34},
+                         paper4) == "flow-limited"
+    paper1 = {"E_p_mm": 1.24, "full_open": 0.30, "flow_limited": 0.0}
+    assert valve_verdict({"E_p_mm": 1.88, "full_open": 0.69, "flow_limited": 0.06},
+                         paper1) == "chatter"
+    assert valve_verdict({"E_p_mm": 0.43, "full_open": 0.01, "flow_limited": 0.0},
+                         paper1) is None
+    # bursts that still beat the paper's gains are not called out
+    assert valve_verdict({"E_p_mm": 1.0, "full_open": 0.69, "flow_limited": 0.06},
+                         paper1) is None
+    assert valve_verdict({"E_p_mm": 1.0, "full_open": float("nan"),
+                          "flow_limited": float("nan")}, paper1) is None

@@ -30,8 +30,10 @@ from .space import params_from_controller
 
 #: The held-out plants and noise are drawn with ``seed + HELDOUT_SEED_OFFSET`` (:func:`compare`).
 HELDOUT_SEED_OFFSET = 1_000_003
-#: report.md says the valves' flow limits a scenario when the tuned controller keeps them fully
-#: open for at least this share of the metric window (Metrics.full_open) [-].
+#: report.md says the valves' flow limits a scenario when the tuned controller keeps a valve
+#: fully open, in openings of at least 0.1 s, for at least this share of the metric window
+#: (Metrics.flow_limited); and that the gains chatter when it opens them fully for this share in
+#: shorter bursts and tracks worse than the paper's gains (Metrics.full_open) [-].
 FLOW_LIMITED = 0.10
 
 
@@ -250,7 +252,7 @@ def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list
              "|---|---|---|---|---|---|---|"]
     tuned = comp.table("tuned", draw)
     paper = comp.table("paper", draw)
-    limited = []
+    limited, chatter = [], []
     for sc in objective.scenarios:
         t, p = tuned[sc.name], paper[sc.name]
         rig = f"{sc.paper[0]:.2f} / {sc.paper[1]:.2f}" if sc.paper else "-"
@@ -259,15 +261,54 @@ def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list
                      f"| {_fmt(p['switches_per_s'], 1)} / {_fmt(t['switches_per_s'], 1)} "
                      f"| {_pct(p.get('full_open'))} / {_pct(t.get('full_open'))} "
                      f"| {p['status']} / {t['status']} |")
-        share = t.get("full_open")
-        if share is not None and np.isfinite(share) and share >= FLOW_LIMITED:
-            limited.append(f"{sc.name} ({share * 100:.0f} %)")
+        verdict = valve_verdict(t, p)
+        if verdict == "flow-limited":
+            limited.append(f"{sc.name} ({t['flow_limited'] * 100:.0f} %)")
+        elif verdict == "chatter":
+            chatter.append(f"{sc.name} ({t['full_open'] * 100:.0f} %)")
     if limited:
         lines += ["", f"Valve flow limits the tracking on {', '.join(limited)}: the tuned "
-                  "controller opens the valves fully for that share of the metric window, so "
-                  "there the error is set by the valves' flow (and the reference's speed), "
-                  "not by the gains; more trials will not lower it."]
+                  "controller holds a valve fully open, in openings of 0.1 s or more, for that "
+                  "share of the metric window, so there the valves pass all they can. Other "
+                  "gains can do better only by opening them earlier; if the paper's gains do "
+                  "no better either, the model's ranges of the valves' C may hold plants that "
+                  "cannot follow the reference at all, and a log that narrows them (identify) "
+                  "lets the study tell controllers apart (docs/tuning.md, \"What limits "
+                  "E_p\")."]
+    if chatter:
+        lines += ["", f"The tuned gains chatter on {', '.join(chatter)}: the controller opens "
+                  "the valves fully for that share of the metric window in bursts shorter than "
+                  "0.1 s and tracks worse than the paper's gains. That is the gains, not the "
+                  "valves: a study with another --seed or more trials may find better ones "
+                  "(docs/tuning.md, \"What limits E_p\")."]
     return lines
+
+
+def valve_verdict(tuned: dict[str, Any], paper: dict[str, Any]) -> str | None:
+    """What report.md says about the valves on one scenario.
+
+    Parameters
+    ----------
+    tuned, paper : dict
+        :meth:`Metrics.as_dict` of the tuned and the paper's controller on the same run.
+
+    Returns
+    -------
+    str or None
+        ``"flow-limited"``: a valve held fully open, 0.1 s or more at a time, for at least
+        :data:`FLOW_LIMITED` of the window; ``"chatter"``: fully open that long only in shorter
+        bursts, and a larger E_p than the paper's gains; else None.
+    """
+    if _at_least(tuned.get("flow_limited"), FLOW_LIMITED):
+        return "flow-limited"
+    if (_at_least(tuned.get("full_open"), FLOW_LIMITED)
+            and tuned.get("E_p_mm", np.nan) > paper.get("E_p_mm", np.inf)):
+        return "chatter"
+    return None
+
+
+def _at_least(x: float | None, level: float) -> bool:
+    return x is not None and bool(np.isfinite(x)) and x >= level
 
 
 def _pct(x: float | None) -> str:

@@ -43,6 +43,9 @@ STATUS_OK, STATUS_UNSTABLE, STATUS_ABORTED = "ok", "unstable", "aborted"
 #: θ̂ has settled when no estimate moves by more than this fraction of its box over the metric
 #: window (Metrics.theta_drift).
 THETA_SETTLED = 0.02
+#: A full opening counts towards :attr:`Metrics.flow_limited` only when it lasts this long [s]
+#: (six 60 Hz PWM periods): shorter bursts are the gains chattering, not the valves' limit.
+FULL_OPEN_SUSTAIN = 0.1
 
 
 @njit(cache=True)
@@ -142,7 +145,14 @@ class Metrics:
     full_open : float
         Fraction of the metric window in which the controller commands a valve at its top duty
         (Eq. 33's sat(Q_Ld / Q_L,F) = 1: the valves' whole flow) [-]. Where it is large the
-        error is set by the valves' flow, not by the gains (nan when not computed).
+        error may be set by the valves' flow, or the gains may be chattering between the modes
+        at full opening (nan when not computed).
+    flow_limited : float
+        The part of ``full_open`` spent with a valve in a full opening that lasts at least
+        :data:`FULL_OPEN_SUSTAIN` without a break (:func:`sustained_runs`) [-]. Where it is
+        large the reference asks for more flow than the valves give, so the error is set by the
+        valves' flow, not by the gains (nan when not computed). A controller that chatters at
+        full opening has a large ``full_open`` but a small ``flow_limited``.
     """
 
     E_p_mm: float
@@ -158,6 +168,7 @@ class Metrics:
     theta_drift: float = float("nan")
     theta_settled: bool = False
     full_open: float = float("nan")
+    flow_limited: float = float("nan")
 
     def as_dict(self) -> dict[str, float | bool | str]:
         """Plain dict (the metrics object of DESIGN.md plus the extra fields)."""
@@ -219,7 +230,7 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
     """The indices of Sec. 5.1 over the last three periods, plus health checks.
 
     ``duty_top`` is the duty a full opening commands (``controller.pwm.top_duty``), for
-    :attr:`Metrics.full_open`; None leaves that nan.
+    :attr:`Metrics.full_open` and :attr:`Metrics.flow_limited`; None leaves them nan.
     """
     n = sensors.shape[0]
     window = min(n, round(3.0 * scenario.period / Ts))
@@ -236,9 +247,11 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
     near = (x <= x_min + 2e-4) | (x >= x_max - 2e-4)
     span = np.maximum(np.asarray(theta_max) - np.asarray(theta_min), 1e-300)
     drift = float(np.max(np.abs(theta[-1] - theta[n - window]) / span))
-    full_open = nan
+    full_open = flow_limited = nan
     if duty_top is not None:
-        full_open = float(np.mean(np.max(duties[n - window:], axis=1) >= duty_top - 1e-9))
+        full = duties[n - window:] >= duty_top - 1e-9
+        full_open = float(np.mean(np.any(full, axis=1)))
+        flow_limited = float(np.mean(sustained_runs(full, round(FULL_OPEN_SUSTAIN / Ts))))
     return Metrics(
         E_p_mm=float(np.max(np.abs(e1)) * 1e3),
         E_rms_mm=float(np.sqrt(np.mean(e1**2)) * 1e3),
@@ -247,8 +260,39 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
         p_a_min_Pa=float(np.min(sensors[:, 1])), p_b_min_Pa=float(np.min(sensors[:, 2])),
         theta_in_bounds=in_bounds, end_stop_s=float(np.count_nonzero(near) * Ts),
         status=status, theta_drift=drift, theta_settled=drift < THETA_SETTLED,
-        full_open=full_open,
+        full_open=full_open, flow_limited=flow_limited,
     )
+
+
+def sustained_runs(mask: np.ndarray, min_run: int) -> np.ndarray:
+    """Per sample, whether some column of ``mask`` is inside a run of at least ``min_run``
+    consecutive Trues.
+
+    Parameters
+    ----------
+    mask : (n, k) bool
+        Per sample and valve, the condition (the valve at full opening). Each column's runs
+        are separate: a controller switching between two valve pairs at full opening has short
+        runs in each.
+    min_run : int
+        Shortest run counted [samples].
+
+    Returns
+    -------
+    (n,) bool
+    """
+    m = np.asarray(mask, dtype=bool)
+    if m.ndim == 1:
+        m = m[:, None]
+    out = np.zeros(m.shape[0], dtype=bool)
+    for col in m.T:
+        edges = np.diff(np.concatenate(([0], col.astype(np.int8), [0])))
+        starts = np.flatnonzero(edges == 1)
+        ends = np.flatnonzero(edges == -1)
+        for a, b in zip(starts, ends, strict=True):
+            if b - a >= max(min_run, 1):
+                out[a:b] = True
+    return out
 
 
 def scenario_plant(plant_cfg: PlantConfig, scenario: Scenario) -> PlantConfig:
