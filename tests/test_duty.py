@@ -106,13 +106,16 @@ def test_pwm_inverse_inverts_the_plant_curve(ratio: float) -> None:
 
 def test_pwm_inverse_dead_zone_and_saturation() -> None:
     """Smallest duty achieving the ratio: 0 -> 0; inside the dead zone (0, 0.15] -> the minimum
-    pulse duty 0.09 = 1.5 ms * 60 Hz; >= 1 -> 0.94 = 1 - (3 ms - 2 ms) * 60 Hz, not 1."""
+    pulse duty 0.09 = 1.5 ms * 60 Hz; >= 1 (the curve's top, reached at 0.94 = 1 - (3 ms -
+    2 ms) * 60 Hz) -> 1, the valve always on (duty.py: one curve, four valves' delays);
+    just below the top the curve's own duty."""
     assert pwm_inverse(0.0, DUTY, RATIO) == 0.0
     assert pwm_inverse(-0.3, DUTY, RATIO) == 0.0
     for r in (1e-9, 0.01, 0.1, 0.15):
         assert pwm_inverse(r, DUTY, RATIO) == pytest.approx(0.09, abs=1e-12)
     for r in (1.0, 1.5):
-        assert pwm_inverse(r, DUTY, RATIO) == pytest.approx(0.94, abs=1e-12)
+        assert pwm_inverse(r, DUTY, RATIO) == 1.0
+    assert pwm_inverse(0.999, DUTY, RATIO) < 0.94
     # monotone non-decreasing
     rs = np.linspace(0, 1.2, 500)
     ds = np.array([pwm_inverse(r, DUTY, RATIO) for r in rs])

@@ -269,12 +269,9 @@ def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list
     if limited:
         lines += ["", f"Valve flow limits the tracking on {', '.join(limited)}: the tuned "
                   "controller holds a valve fully open, in openings of 0.1 s or more, for that "
-                  "share of the metric window, so there the valves pass all they can. Other "
-                  "gains can do better only by opening them earlier; if the paper's gains do "
-                  "no better either, the model's ranges of the valves' C may hold plants that "
-                  "cannot follow the reference at all, and a log that narrows them (identify) "
-                  "lets the study tell controllers apart (docs/tuning.md, \"What limits "
-                  "E_p\")."]
+                  "share of the metric window, so there the valves pass all they can; other "
+                  "gains can do better only by opening them earlier, and larger valves or a "
+                  "slower reference by more (docs/tuning.md, \"What limits E_p\")."]
     if chatter:
         lines += ["", f"The tuned gains chatter on {', '.join(chatter)}: the controller opens "
                   "the valves fully for that share of the metric window in bursts shorter than "

@@ -119,8 +119,9 @@ class PwmCurve(_Strict):
 
     @property
     def top_duty(self) -> float:
-        """The smallest duty at which the curve reaches its largest ratio: what a full opening
-        (Eq. 33's sat = 1) commands (:func:`pneutune.control.law.duty.pwm_inverse`)."""
+        """The smallest duty at which the curve reaches its largest ratio: any duty from here to
+        1 is a full opening by the curve (Eq. 33's sat = 1 commands 1,
+        :func:`pneutune.control.law.duty.pwm_inverse`)."""
         top = self.ratio[-1]
         return next(d for d, r in zip(self.duty, self.ratio, strict=True) if r >= top)
 

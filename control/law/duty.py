@@ -30,8 +30,12 @@ PWM inverse
     :func:`pwm_inverse` returns the *smallest* duty whose effective fraction reaches ``u`` on the
     piecewise-linear curve: 0 for u <= 0; inside the dead zone (the curve jumps from 0 to
     ratio_j at the minimum pulse) the duty of the jump, so a small demand gives the smallest
-    pulse that opens the valve rather than a pulse that never opens it; above the curve's
-    largest ratio the smallest duty that reaches it (saturation: no longer pulse than needed).
+    pulse that opens the valve rather than a pulse that never opens it; at or above the curve's
+    largest ratio duty 1, the valve always on. The curve reaches its top before duty 1 (0.94
+    on the default plant, where a short off-gap is swallowed by delay_off > delay_on), but it
+    is one curve for four valves: a valve whose delay_off is shorter than its delay_on closes in
+    every off-gap, so a smaller duty would leave the bottleneck valve short of flow exactly where
+    Eq. (33) asks for all of it (fleet plant 4's a_out: 2.6 ms shut per 16.7 ms period at 0.94).
 Dead zone: ``up`` or ``dither`` (contract 4 ``dead_zone``)
     A wanted fraction ``0 < u < r_k`` below the curve's dead-zone knee ``(d_k, r_k)``
     (:func:`dead_zone_knee`) cannot be delivered in one PWM period: a pulse shorter than the
@@ -173,7 +177,7 @@ def pwm_inverse(ratio: float, duty_pts: np.ndarray, ratio_pts: np.ndarray) -> fl
     -------
     float
         Duty in [0, 1]: 0 for ``ratio <= 0``; linear interpolation on the first segment that
-        reaches ``ratio``; the smallest duty reaching the curve's top for larger ratios.
+        reaches ``ratio``; 1 for a ratio at or above the curve's top (module docstring).
     """
     if not ratio > 0.0:
         return 0.0
@@ -181,8 +185,8 @@ def pwm_inverse(ratio: float, duty_pts: np.ndarray, ratio_pts: np.ndarray) -> fl
     top = ratio_pts[m - 1]
     if not top > 0.0:
         return 0.0
-    if ratio > top:
-        ratio = top
+    if ratio >= top:
+        return 1.0
     for i in range(1, m):
         r1 = ratio_pts[i]
         if r1 >= ratio:
