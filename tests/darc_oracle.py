@@ -35,10 +35,13 @@ def eq7(C: float, b: float, p_u: float, p_d: float, T_u: float) -> float:
 
 
 def pwm_inverse(u: float, duty: list[float], ratio: list[float]) -> float:
-    """Smallest duty whose effective fraction on the piecewise-linear curve reaches u."""
+    """Smallest duty whose effective fraction on the piecewise-linear curve reaches u; a full
+    opening (u at or above the curve's top) is duty 1, the valve always on (control/law/duty.py:
+    one curve for four valves whose delays differ)."""
     if u <= 0.0:
         return 0.0
-    u = min(u, ratio[-1])
+    if u >= ratio[-1]:
+        return 1.0
     for i in range(1, len(duty)):
         if ratio[i] >= u:
             if ratio[i] == u:

@@ -190,7 +190,10 @@ def test_piston_never_moves_is_not_identifiable(tmp_path, source):
 def test_closed_loop_log_without_labels_or_truth(tmp_path):
     """A real user's log: a closed-loop run (here deploy's, paper config) with only
     /rig/sensors, /rig/valves and the rig metadata. identify must run, write a model that
-    validates, and say in its notes what the log cannot separate."""
+    validates, and say in its notes what the log cannot separate: here the mass (the pole
+    b_v/M above the 4 ms Nyquist frequency) and the chambers' constant terms (their valves never
+    all shut for a window). The valves do run at full duty: Eq. (33)'s full opening commands
+    duty 1 (control/law/duty.py), which pins C."""
     full = tmp_path / "deploy.mcap"
     res = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy", str(PAPER),
                           "--scenario", "sine-0.75hz", "--log", str(full), "--seed", "3"],
@@ -202,7 +205,9 @@ def test_closed_loop_log_without_labels_or_truth(tmp_path):
     assert res.returncode == 0, res.stderr
     model = load_model(out / "model.yaml")
     assert (out / "report.md").exists()
-    assert any("full duty" in n for n in model.notes)
+    assert any(n.startswith("mass: not identifiable") for n in model.notes)
+    assert any(n.startswith("D_an:") for n in model.notes)
+    assert not any("never runs at full duty" in n for n in model.notes)
     # consistent with the plant it came from (issue 6: log -> identify -> model)
     truth = PlantConfig()
     assert model.friction.b_v == pytest.approx(truth.friction.b_v, rel=0.15)
