@@ -250,6 +250,8 @@ class FrictionIdentifier(Identifier):
         self._require_fitted()
         rng = np.random.default_rng(seed)
         n = len(self._y)
+        if n < block:  # a short log: blocks of a quarter of it, so that resampling still varies
+            block = max(1, n // 4)
         nb = max(1, n // block)
         out = np.empty((n_boot, 3))
         for i in range(n_boot):
