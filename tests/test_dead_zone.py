@@ -85,7 +85,7 @@ def test_dither_delivers_the_wanted_mean_through_the_plant_valves(update: str,
     u = np.array([wanted, 0.0, 0.0, wanted])
     dithered = np.zeros((n, 4))
     rounded = np.zeros((n, 4))
-    acc, pulse, last = np.zeros(4), np.zeros(4), np.array([-1.0])
+    acc, pulse, last = np.full(4, 0.5 * r_k), np.zeros(4), np.array([-1.0])  # as init_state
     for k in range(n):
         d = np.array([pwm_inverse(x, duty, ratio) for x in u])
         rounded[k] = d

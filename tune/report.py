@@ -24,6 +24,7 @@ from optuna.trial import FrozenTrial, TrialState
 from pneutune.control.cli.common import format_table
 from pneutune.control.contracts.atomic import atomic_write_text, save_figure
 from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.sim.closed_loop import FULL_OPEN_SUSTAIN
 
 from .objective import FAIL_VALUE, Evaluation, TuneObjective
 from .space import params_from_controller
@@ -268,14 +269,16 @@ def _side_by_side(comp: Comparison, objective: TuneObjective, draw: int) -> list
             chatter.append(f"{sc.name} ({t['full_open'] * 100:.0f} %)")
     if limited:
         lines += ["", f"Valve flow limits the tracking on {', '.join(limited)}: the tuned "
-                  "controller holds a valve fully open, in openings of 0.1 s or more, for that "
+                  f"controller holds a valve fully open, in openings of {FULL_OPEN_SUSTAIN:g} s "
+                  "or more, for that "
                   "share of the metric window, so there the valves pass all they can; other "
                   "gains can do better only by opening them earlier, and larger valves or a "
                   "slower reference by more (docs/tuning.md, \"What limits E_p\")."]
     if chatter:
         lines += ["", f"The tuned gains chatter on {', '.join(chatter)}: the controller opens "
                   "the valves fully for that share of the metric window in bursts shorter than "
-                  "0.1 s and tracks worse than the paper's gains. That is the gains, not the "
+                  f"{FULL_OPEN_SUSTAIN:g} s and tracks worse than the paper's gains. That is the "
+                  "gains, not the "
                   "valves: a study with another --seed or more trials may find better ones "
                   "(docs/tuning.md, \"What limits E_p\")."]
     return lines

@@ -408,6 +408,7 @@ def init_state(cfg: ControllerConfig | np.ndarray, x0: float, p_a0: float,
     s[S_F_PD] = F_p0
     s[S_F_PD_PREV] = F_p0
     s[S_X_HAT] = x0
+    s[S_DZ_ACC:S_DZ_ACC + 4] = 0.5 * v[CFG_DZ_RATIO]  # as after a closed valve (duty.py)
     s[S_DZ_PERIOD] = -1.0
     return s
 

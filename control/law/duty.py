@@ -226,8 +226,6 @@ def duties_into(q_ld: float, q_lf: float, duty_pts: np.ndarray, ratio_pts: np.nd
     return case
 
 
-
-
 def dead_zone_knee(duty_pts: np.ndarray, ratio_pts: np.ndarray) -> tuple[float, float]:
     """The top ``(d_k, r_k)`` of the PWM curve's dead-zone rise, or ``(0, 0)`` if it has none.
 
@@ -258,9 +256,8 @@ def dead_zone_knee(duty_pts: np.ndarray, ratio_pts: np.ndarray) -> tuple[float, 
     chord = top / top_duty
     dd = np.diff(d)
     dr = np.diff(r)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(dd > 0.0, dr / np.where(dd > 0.0, dd, 1.0),
-                         np.where(dr > 0.0, np.inf, 0.0))
+    slope = np.where(dr > 0.0, np.inf, 0.0)  # a vertical step is infinitely steep
+    np.divide(dr, dd, out=slope, where=dd > 0.0)
     low = r[1:] <= 0.5 * top
     if not low.any():
         return 0.0, 0.0
@@ -300,17 +297,16 @@ def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: 
     pulse : (4,) float64
         1 if the valve has its pulse in the current carrier period, else 0; updated.
     last : (1,) float64
-        Index of the last carrier period decided (-1 before the first); updated.
+        Index of the last carrier period decided; updated. Before the first, -1 and every
+        accumulator at ``r_k / 2`` (:func:`pneutune.control.law.darc.init_state`).
     """
     if not r_k > 0.0:
         return
     n_next = np.floor((t + Ts) / period - 1.0e-9)
     m = n_next - last[0]
     if m > 0.0:
-        if last[0] < 0.0:  # first decision: every valve as if it had been closed
+        if last[0] < 0.0:  # the first decision (init_state set acc as after a closed valve)
             m = 1.0
-            for i in range(4):
-                acc[i] = 0.5 * r_k
         last[0] = n_next
         for i in range(4):
             ui = u[i]

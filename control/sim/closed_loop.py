@@ -282,8 +282,6 @@ def sustained_runs(mask: np.ndarray, min_run: int) -> np.ndarray:
     (n,) bool
     """
     m = np.asarray(mask, dtype=bool)
-    if m.ndim == 1:
-        m = m[:, None]
     out = np.zeros(m.shape[0], dtype=bool)
     for col in m.T:
         edges = np.diff(np.concatenate(([0], col.astype(np.int8), [0])))
