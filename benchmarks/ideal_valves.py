@@ -10,6 +10,12 @@ and the paper's on the changed plant (noise seed 1000 + plant, as the fleet):
   opening is available, which is what dithering across PWM periods would approximate);
 * ``immediate``: a latched plant with ``pwm_update: immediate`` (a new duty acts at once, not
   at the next 16.7 ms period);
+* ``equal-timing``: every valve with a_in's ``delay_on``, ``delay_off`` and ``min_pulse`` (C
+  and b unchanged), so that the one PWM curve of contract 4 is right for all four valves: what
+  one curve per valve could recover at most;
+* ``one-curve``: the plant as it is, the model (and so the controller) without the valves' own
+  PWM curves (``valves.<v>.pwm``): every valve's duty inverted on a_in's curve, as before
+  contract 4 had a curve per valve;
 * ``dither``: the plant as it is, the controller tuned and scored with ``dead_zone: dither``
   (``tune --dead-zone dither``: whole smallest pulses in some PWM periods, their mean the wanted
   opening), what a controller can recover of the ``no-dead-zone`` row.
@@ -37,7 +43,7 @@ import numpy as np
 from fleet import PAPER, SCORED, fleet_plant, score
 
 from pneutune.control.constants import VALVES
-from pneutune.control.contracts.model import save_model
+from pneutune.control.contracts.model import ModelConfig, save_model
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.sim.truth import model_from_plant
 
@@ -47,8 +53,13 @@ def variants(plant: PlantConfig) -> dict[str, PlantConfig]:
     out = {"as-is": plant, "no-dead-zone": plant.with_updates({"valves": {
         n: {"min_pulse": 0.0, "delay_off": getattr(plant.valves, n).delay_on}
         for n in VALVES}})}
+    a_in = plant.valves.a_in
+    out["equal-timing"] = plant.with_updates({"valves": {
+        n: {"delay_on": a_in.delay_on, "delay_off": a_in.delay_off, "min_pulse": a_in.min_pulse}
+        for n in VALVES}})
     if plant.rig.pwm_update == "latched":
         out["immediate"] = plant.with_updates({"rig": {"pwm_update": "immediate"}})
+    out["one-curve"] = plant
     out["dither"] = plant
     return out
 
@@ -58,7 +69,13 @@ def tune_and_score(i: int, tag: str, plant: PlantConfig, seed: int, trials: int,
     """``tune --seed seed`` on ``plant`` read as a model; E_p [mm] per scenario on ``plant``."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    save_model(model_from_plant(plant), work / "model.yaml")
+    model = model_from_plant(plant)
+    if tag == "one-curve":
+        data = model.to_dict()
+        for name in VALVES:
+            data["valves"][name].pop("pwm", None)
+        model = ModelConfig.model_validate(data)
+    save_model(model, work / "model.yaml")
     tune = shutil.which("tune", path=os.path.dirname(sys.executable)) or "tune"
     proc = subprocess.run([tune, "--model", str(work / "model.yaml"), "--trials", str(trials),
                            "--out", str(work / "tune"), "--seed", str(seed),
@@ -82,7 +99,7 @@ def main() -> int:
                     "with several, a summary gives the mean and range per cell (default 1)")
     ap.add_argument("--out", default="reports/ideal-valves")
     ap.add_argument("--only", default="", help="comma-separated variants to run (default all: "
-                    "as-is, no-dead-zone, immediate, dither)")
+                    "as-is, no-dead-zone, equal-timing, immediate, one-curve, dither)")
     args = ap.parse_args()
     seeds = [int(k) for k in args.tune_seeds.split(",")]
     print("E_p [mm] tuned / paper's gains: " + " | ".join(SCORED))

@@ -435,6 +435,8 @@ def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: Frict
                        "C_max": c_hi, "b_min": b_lo, "b_max": b_hi,
                        "delay_on": sw["delay_on"], "delay_off": sw["delay_off"],
                        "min_pulse": sw["min_pulse"]}
+        v_duty, v_ratio = _curve_points(valves.knots_, valves.curves_[i])
+        vdict[name]["pwm"] = {"duty": v_duty, "ratio": v_ratio}
     f = friction
     sd = f.std_
     F_C_range = _range(f.F_C_, sd["F_C"], 0.1)

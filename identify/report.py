@@ -42,8 +42,8 @@ def _plot_pwm(r: IdentifyResult, out: Path) -> Path:
     fig = Figure(figsize=(6, 4.5))
     ax = fig.subplots()
     for i, name in enumerate(VALVES):
-        ax.plot(v.knots_, v.curves_[i], lw=0.8, label=name)
-    ax.plot(v.knots_, v.curve_, "k", lw=2, label="mean (model.yaml)")
+        ax.plot(v.knots_, v.curves_[i], lw=0.8, label=f"{name} (valves.{name}.pwm)")
+    ax.plot(v.knots_, v.curve_, "k", lw=2, label="mean (pwm)")
     ax.plot([0, 1], [0, 1], ":", color="0.5", lw=0.8)
     ax.set_xlabel("commanded duty")
     ax.set_ylabel("effective open fraction")

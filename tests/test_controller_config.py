@@ -17,9 +17,12 @@ from pneutune.control.contracts.controller import (
     save_controller,
 )
 from pneutune.control.contracts.json_schemas import schema_path, schema_text
+from pneutune.control.contracts.yamlio import validate_model
 from pneutune.control.errors import ConfigError
 from pneutune.control.law.kalman import motion_model
 from pneutune.control.law.layout import (
+    CFG_DZ_DUTY,
+    CFG_DZ_RATIO,
     CFG_GAMMA,
     CFG_K2,
     CFG_KM_A,
@@ -33,6 +36,7 @@ from pneutune.control.law.layout import (
     CFG_THETA_0,
     CFG_VALVE_C,
     CFG_VARIANT,
+    PWM_STRIDE,
     pack,
 )
 
@@ -201,10 +205,38 @@ def test_pack_layout() -> None:
     np.testing.assert_allclose(v[CFG_KM_A:CFG_KM_A + 9].reshape(3, 3), A, rtol=1e-15)
     np.testing.assert_allclose(v[CFG_KM_WQW:CFG_KM_WQW + 9].reshape(3, 3),
                                3.1e-3 * np.outer(W, W), rtol=1e-12)
-    m = int(v[CFG_PWM_N])
-    assert m == len(cfg.pwm.duty)
-    np.testing.assert_array_equal(v[CFG_PWM_DUTY:CFG_PWM_DUTY + m], cfg.pwm.duty)
-    np.testing.assert_array_equal(v[CFG_PWM_RATIO:CFG_PWM_RATIO + m], cfg.pwm.ratio)
+    for i in range(4):  # no valve has a curve of its own: each slot holds the shared one
+        m, at = int(v[CFG_PWM_N + i]), i * PWM_STRIDE
+        assert m == len(cfg.pwm.duty)
+        np.testing.assert_array_equal(v[CFG_PWM_DUTY + at:CFG_PWM_DUTY + at + m], cfg.pwm.duty)
+        np.testing.assert_array_equal(v[CFG_PWM_RATIO + at:CFG_PWM_RATIO + at + m],
+                                      cfg.pwm.ratio)
+
+
+def test_a_valve_with_its_own_pwm_curve(tmp_path: Path) -> None:
+    """``valves.<v>.pwm`` (added by pneutune): b_out's own curve is packed in b_out's slot, the
+    others keep the top-level curve; the file round-trips, and a valve without a curve of its
+    own is written without the key (no ``pwm: null``)."""
+    raw = _paper_dict()
+    own = {"duty": [0.0, 0.15, 0.15, 1.0], "ratio": [0.0, 0.0, 0.2, 1.0]}
+    raw["valves"]["b_out"]["pwm"] = own
+    cfg = ControllerConfig.model_validate(raw)
+    assert cfg.valve_curves[3].duty == tuple(own["duty"])
+    assert cfg.valve_curves[0] is cfg.pwm
+    assert cfg.top_duties == (cfg.pwm.top_duty,) * 3 + (1.0,)
+    v = pack(cfg)
+    at = 3 * PWM_STRIDE
+    assert v[CFG_PWM_N + 3] == 4 and v[CFG_PWM_N] == len(cfg.pwm.duty)
+    np.testing.assert_array_equal(v[CFG_PWM_RATIO + at:CFG_PWM_RATIO + at + 4], own["ratio"])
+    assert (v[CFG_DZ_DUTY + 3], v[CFG_DZ_RATIO + 3]) == (0.15, 0.2)
+    save_controller(cfg, tmp_path / "c.yaml")
+    text = (tmp_path / "c.yaml").read_text(encoding="utf-8")
+    assert "pwm: null" not in text and text.count("pwm:") == 2
+    assert load_controller(tmp_path / "c.yaml") == cfg
+    bad = copy.deepcopy(raw)
+    bad["valves"]["a_in"]["pwm"] = {"duty": [0.0, 0.5], "ratio": [0.1, 1.0]}
+    with pytest.raises(ConfigError, match=r"valves\.a_in\.pwm"):
+        validate_model(ControllerConfig, bad, "c.yaml")
 
 
 def test_model_is_frozen() -> None:

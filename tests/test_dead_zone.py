@@ -89,7 +89,8 @@ def test_dither_delivers_the_wanted_mean_through_the_plant_valves(update: str,
     for k in range(n):
         d = np.array([pwm_inverse(x, duty, ratio) for x in u])
         rounded[k] = d
-        dither_into(u, d, k * TS, TS, PERIOD, d_k, r_k, acc, pulse, last)
+        dither_into(u, d, k * TS, TS, PERIOD, np.full(4, d_k), np.full(4, r_k), acc, pulse,
+                    last)
         dithered[k] = d
     for duties, expected in ((dithered, wanted), (rounded, r_k)):
         out = np.zeros((n, 4))
@@ -109,7 +110,8 @@ def test_dither_leaves_openings_above_the_knee_alone() -> None:
     u = np.array([0.5, 0.0, 0.0, r_k])
     d = np.array([pwm_inverse(x, duty, ratio) for x in u])
     before = d.copy()
-    dither_into(u, d, 0.0, TS, PERIOD, d_k, r_k, np.zeros(4), np.zeros(4), np.array([-1.0]))
+    dither_into(u, d, 0.0, TS, PERIOD, np.full(4, d_k), np.full(4, r_k), np.zeros(4),
+                np.zeros(4), np.array([-1.0]))
     np.testing.assert_array_equal(d, before)
 
 
@@ -121,7 +123,9 @@ def test_dead_zone_key_in_the_config_and_the_packed_vector() -> None:
     v = pack(_paper("dither"))
     assert v[CFG_DZ_MODE] == 1.0 and pack(up)[CFG_DZ_MODE] == 0.0
     assert v[CFG_PWM_PERIOD] == pytest.approx(1.0 / 60.0)
-    assert (v[CFG_DZ_DUTY], v[CFG_DZ_RATIO]) == dead_zone_knee(up.pwm.duty, up.pwm.ratio)
+    for i in range(4):  # the paper's valves share the top-level curve
+        assert (v[CFG_DZ_DUTY + i], v[CFG_DZ_RATIO + i]) == dead_zone_knee(up.pwm.duty,
+                                                                             up.pwm.ratio)
     with pytest.raises(ConfigError, match="dead_zone"):
         validate_model(ControllerConfig, {**up.to_dict(), "dead_zone": "dithered"}, "c.yaml")
 

@@ -134,6 +134,23 @@ def test_pwm_inverse_flat_segment_takes_smallest_duty() -> None:
 def test_duties_into_applies_the_inverse() -> None:
     """Eq. (33) case 2 with u = 0.5 gives duty 0.44 on a_in and b_out (0.5 - 0.06)."""
     u, duties = np.empty(4), np.empty(4)
-    case = duties_into(1000.0, 2000.0, DUTY, RATIO, u, duties)
+    n = len(DUTY)
+    case = duties_into(1000.0, 2000.0, np.full(4, float(n)), np.tile(DUTY, 4), np.tile(RATIO, 4),
+                       n, u, duties)
     assert case == CASE_A_FILL
     np.testing.assert_allclose(duties, [0.44, 0.0, 0.0, 0.44], atol=1e-12)
+
+
+def test_duties_into_inverts_each_valve_on_its_own_curve() -> None:
+    """One curve per valve: a_in on the shared curve (u = 0.5 -> 0.44, as above), b_out on the
+    identity curve r = d (u = 0.5 -> 0.5), read from a stride longer than either curve."""
+    stride = 64
+    n_pts = np.array([len(DUTY), 2.0, 2.0, 2.0])
+    duty_pts = np.zeros(4 * stride)
+    ratio_pts = np.zeros(4 * stride)
+    duty_pts[:len(DUTY)], ratio_pts[:len(RATIO)] = DUTY, RATIO
+    for i in (1, 2, 3):
+        duty_pts[i * stride:i * stride + 2] = ratio_pts[i * stride:i * stride + 2] = (0.0, 1.0)
+    u, duties = np.empty(4), np.empty(4)
+    duties_into(1000.0, 2000.0, n_pts, duty_pts, ratio_pts, stride, u, duties)
+    np.testing.assert_allclose(duties, [0.44, 0.0, 0.0, 0.5], atol=1e-12)

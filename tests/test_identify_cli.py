@@ -230,3 +230,19 @@ def test_json_and_outputs(tmp_path):
     for name in ("model.yaml", "report.md", "valves.png", "pwm.png", "friction.png",
                  "validation.png"):
         assert (out / name).exists(), name
+    # one PWM curve per valve (valves.<v>.pwm): each within 0.005 of the curve of the rig's own
+    # valve timing (measured: 0.001 at most, 2026-11-24), the top-level pwm their mean
+    from pneutune.control.physics.pwm import effective_open_fraction
+
+    model = load_model(out / "model.yaml")
+    truth = PlantConfig()
+    curves = []
+    for v, t in zip(model.valves.ordered(), truth.valves.ordered(), strict=True):
+        assert v.pwm is not None
+        duty, ratio = np.array(v.pwm.duty), np.array(v.pwm.ratio)
+        true = effective_open_fraction(duty, truth.rig.pwm_period, t.delay_on, t.delay_off,
+                                       t.min_pulse)
+        np.testing.assert_allclose(ratio, true, atol=0.005)
+        curves.append(ratio)
+    np.testing.assert_allclose(model.pwm.ratio, np.maximum.accumulate(np.mean(curves, axis=0)),
+                               atol=1e-6)

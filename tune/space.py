@@ -260,7 +260,9 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
         "position_feedback": "measured",
         "dead_zone": dead_zone,
         "rig": rig.model_dump(),
-        "valves": {name: {"C": v.C, "b": v.b}
+        "valves": {name: {"C": v.C, "b": v.b,
+                          **({"pwm": {"duty": list(v.pwm.duty), "ratio": list(v.pwm.ratio)}}
+                             if v.pwm is not None else {})}
                    for name, v in zip(("a_in", "a_out", "b_in", "b_out"),
                                       model.valves.ordered(), strict=True)},
         "pwm": {"duty": list(model.pwm.duty), "ratio": list(model.pwm.ratio)},

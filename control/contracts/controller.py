@@ -67,26 +67,6 @@ Vec6NonNeg = Annotated[tuple[_NonNeg, _NonNeg, _NonNeg, _NonNeg, _NonNeg, _NonNe
 Vec6Pos = Annotated[tuple[_Pos, _Pos, _Pos, _Pos, _Pos, _Pos], BeforeValidator(_vector6)]
 
 
-class ControllerValve(_Strict):
-    """ISO 6358 constants of one valve (Eq. 7), for the fully-open flows of Eq. (32)."""
-
-    C: float = Field(gt=0.0, le=1.0e-6, description="Sonic conductance [m^3/(s Pa)]")
-    b: float = Field(ge=0.0, le=0.95, description="Critical pressure ratio [-]")
-
-
-class ControllerValves(_Strict):
-    """The four valves, in the order a_in, a_out, b_in, b_out."""
-
-    a_in: ControllerValve
-    a_out: ControllerValve
-    b_in: ControllerValve
-    b_out: ControllerValve
-
-    def ordered(self) -> tuple[ControllerValve, ...]:
-        """The valves in the contract order (:data:`~pneutune.control.constants.VALVES`)."""
-        return tuple(getattr(self, name) for name in VALVES)
-
-
 class PwmCurve(_Strict):
     """Effective open fraction (``ratio``) versus commanded duty (``duty``) of the valves.
 
@@ -124,6 +104,33 @@ class PwmCurve(_Strict):
         :func:`pneutune.control.law.duty.pwm_inverse`)."""
         top = self.ratio[-1]
         return next(d for d, r in zip(self.duty, self.ratio, strict=True) if r >= top)
+
+
+class ControllerValve(_Strict):
+    """ISO 6358 constants of one valve (Eq. 7), for the fully-open flows of Eq. (32)."""
+
+    C: float = Field(gt=0.0, le=1.0e-6, description="Sonic conductance [m^3/(s Pa)]")
+    b: float = Field(ge=0.0, le=0.95, description="Critical pressure ratio [-]")
+    pwm: PwmCurve | None = Field(
+        None, description="Added by pneutune: this valve's own PWM curve (its delays and "
+        "minimum pulse differ from the others'); absent: the top-level pwm, shared by the four")
+
+
+class ControllerValves(_Strict):
+    """The four valves, in the order a_in, a_out, b_in, b_out."""
+
+    a_in: ControllerValve
+    a_out: ControllerValve
+    b_in: ControllerValve
+    b_out: ControllerValve
+
+    def ordered(self) -> tuple[ControllerValve, ...]:
+        """The valves in the contract order (:data:`~pneutune.control.constants.VALVES`)."""
+        return tuple(getattr(self, name) for name in VALVES)
+
+    def curves(self, shared: PwmCurve) -> tuple[PwmCurve, ...]:
+        """Each valve's PWM curve in the contract order: its own, else ``shared``."""
+        return tuple(v.pwm if v.pwm is not None else shared for v in self.ordered())
 
 
 class GainsConfig(_Strict):
@@ -260,7 +267,8 @@ class ControllerConfig(_Strict):
         "control/law/duty.py, docs/tuning.md)")
     rig: RigConfig
     valves: ControllerValves
-    pwm: PwmCurve
+    pwm: PwmCurve = Field(description="The valves' PWM curve; a valve with a curve of its own "
+                          "(valves.<v>.pwm, added by pneutune) uses that instead")
     gains: GainsConfig
     adaptation: AdaptationConfig
     kalman: KalmanConfig
@@ -269,8 +277,25 @@ class ControllerConfig(_Strict):
     provenance: ProvenanceConfig | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-data form, as written to controller.yaml (tuples as lists)."""
-        return self.model_dump(by_alias=True, mode="json")
+        """Plain-data form, as written to controller.yaml (tuples as lists; a valve without a
+        curve of its own has no ``pwm`` key)."""
+        out = self.model_dump(by_alias=True, mode="json")
+        for name in VALVES:
+            if out["valves"][name].get("pwm") is None:
+                out["valves"][name].pop("pwm", None)
+        return out
+
+    @property
+    def valve_curves(self) -> tuple[PwmCurve, ...]:
+        """The PWM curve each valve's duty is inverted on, in the contract order
+        (``valves.<v>.pwm``, else the top-level ``pwm``)."""
+        return self.valves.curves(self.pwm)
+
+    @property
+    def top_duties(self) -> tuple[float, ...]:
+        """Per valve, the smallest duty of a full opening by its curve
+        (:attr:`PwmCurve.top_duty`)."""
+        return tuple(c.top_duty for c in self.valve_curves)
 
     @property
     def variant_code(self) -> int:

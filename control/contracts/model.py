@@ -71,6 +71,8 @@ class ModelValve(_Strict):
     delay_off: float = Field(0.0, ge=0.0, le=0.05, description="Added: command-off to closed [s]")
     min_pulse: float = Field(0.0, ge=0.0, le=0.05,
                              description="Added: shortest command pulse that opens [s]")
+    pwm: PwmCurve | None = Field(None, description="Added: this valve's own PWM curve "
+                                 "(absent: the top-level pwm, shared by the four)")
 
     @model_validator(mode="after")
     def _check(self) -> ModelValve:
@@ -93,6 +95,10 @@ class ModelValves(_Strict):
     def ordered(self) -> tuple[ModelValve, ...]:
         """The valves in the contract order."""
         return tuple(getattr(self, name) for name in VALVES)
+
+    def curves(self, shared: PwmCurve) -> tuple[PwmCurve, ...]:
+        """Each valve's PWM curve in the contract order: its own, else ``shared``."""
+        return tuple(v.pwm if v.pwm is not None else shared for v in self.ordered())
 
 
 class FrictionRanges(_Strict):

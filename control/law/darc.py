@@ -112,6 +112,7 @@ from pneutune.control.law.layout import (
     CFG_VARIANT,
     CFG_X_MAX,
     CFG_X_MIN,
+    PWM_STRIDE,
     pack,
 )
 from pneutune.control.law.projection import adapt_step_into
@@ -318,12 +319,14 @@ def step_into(state: np.ndarray, meas: np.ndarray, cfg: np.ndarray,
     q_lf = fully_open_q_l(q_ld, p_a, p_b, p_s, cfg[CFG_P0], cfg[CFG_T0], cfg[CFG_NR], A_a, A_b,
                           V_a, V_b, cfg[CFG_VALVE_C:CFG_VALVE_C + 4],
                           cfg[CFG_VALVE_B:CFG_VALVE_B + 4])
-    m = int(cfg[CFG_PWM_N])
-    case = duties_into(q_ld, q_lf, cfg[CFG_PWM_DUTY:CFG_PWM_DUTY + m],
-                       cfg[CFG_PWM_RATIO:CFG_PWM_RATIO + m], state[S_U:S_U + 4], duties_out)
+    case = duties_into(q_ld, q_lf, cfg[CFG_PWM_N:CFG_PWM_N + 4],
+                       cfg[CFG_PWM_DUTY:CFG_PWM_DUTY + 4 * PWM_STRIDE],
+                       cfg[CFG_PWM_RATIO:CFG_PWM_RATIO + 4 * PWM_STRIDE], PWM_STRIDE,
+                       state[S_U:S_U + 4], duties_out)
     if int(cfg[CFG_DZ_MODE]) == DZ_DITHER:
         dither_into(state[S_U:S_U + 4], duties_out, meas[M_T], Ts, cfg[CFG_PWM_PERIOD],
-                    cfg[CFG_DZ_DUTY], cfg[CFG_DZ_RATIO], state[S_DZ_ACC:S_DZ_ACC + 4],
+                    cfg[CFG_DZ_DUTY:CFG_DZ_DUTY + 4], cfg[CFG_DZ_RATIO:CFG_DZ_RATIO + 4],
+                    state[S_DZ_ACC:S_DZ_ACC + 4],
                     state[S_DZ_PULSE:S_DZ_PULSE + 4], state[S_DZ_PERIOD:S_DZ_PERIOD + 1])
 
     state[S_F_PD_PREV] = F_pd
@@ -408,7 +411,7 @@ def init_state(cfg: ControllerConfig | np.ndarray, x0: float, p_a0: float,
     s[S_F_PD] = F_p0
     s[S_F_PD_PREV] = F_p0
     s[S_X_HAT] = x0
-    s[S_DZ_ACC:S_DZ_ACC + 4] = 0.5 * v[CFG_DZ_RATIO]  # as after a closed valve (duty.py)
+    s[S_DZ_ACC:S_DZ_ACC + 4] = 0.5 * v[CFG_DZ_RATIO:CFG_DZ_RATIO + 4]  # as after a closed valve
     s[S_DZ_PERIOD] = -1.0
     return s
 

@@ -200,16 +200,21 @@ def pwm_inverse(ratio: float, duty_pts: np.ndarray, ratio_pts: np.ndarray) -> fl
 
 
 @njit(cache=True, error_model="numpy")
-def duties_into(q_ld: float, q_lf: float, duty_pts: np.ndarray, ratio_pts: np.ndarray,
-                u_work: np.ndarray, duties_out: np.ndarray) -> int:
-    """Eq. (33) then the PWM inverse: the four commanded duties.
+def duties_into(q_ld: float, q_lf: float, n_pts: np.ndarray, duty_pts: np.ndarray,
+                ratio_pts: np.ndarray, stride: int, u_work: np.ndarray,
+                duties_out: np.ndarray) -> int:
+    """Eq. (33) then each valve's PWM inverse: the four commanded duties.
 
     Parameters
     ----------
     q_ld, q_lf : float
         Desired and fully-open Q_L [N/s].
-    duty_pts, ratio_pts : (m,) float64
-        PWM curve (see :func:`pwm_inverse`).
+    n_pts : (4,) float64
+        Number of points of each valve's curve.
+    duty_pts, ratio_pts : (4 * stride,) float64
+        The valves' PWM curves (see :func:`pwm_inverse`), valve ``i``'s from ``i * stride``.
+    stride : int
+        Distance between two valves' curves in ``duty_pts`` and ``ratio_pts``.
     u_work : (4,) float64
         Receives the effective open fractions of Eq. (33).
     duties_out : (4,) float64
@@ -222,7 +227,9 @@ def duties_into(q_ld: float, q_lf: float, duty_pts: np.ndarray, ratio_pts: np.nd
     """
     case = eq33_into(q_ld, q_lf, u_work)
     for i in range(4):
-        duties_out[i] = pwm_inverse(u_work[i], duty_pts, ratio_pts)
+        at = i * stride
+        m = int(n_pts[i])
+        duties_out[i] = pwm_inverse(u_work[i], duty_pts[at:at + m], ratio_pts[at:at + m])
     return case
 
 
@@ -273,7 +280,7 @@ def dead_zone_knee(duty_pts: np.ndarray, ratio_pts: np.ndarray) -> tuple[float, 
 
 @njit(cache=True, error_model="numpy")
 def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: float,
-                d_k: float, r_k: float, acc: np.ndarray, pulse: np.ndarray,
+                d_k: np.ndarray, r_k: np.ndarray, acc: np.ndarray, pulse: np.ndarray,
                 last: np.ndarray) -> None:
     """Dead-zone dithering (module docstring): overwrite the duties of valves with 0 < u < r_k.
 
@@ -290,8 +297,9 @@ def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: 
         Control period [s].
     period : float
         PWM carrier period [s].
-    d_k, r_k : float
-        The dead-zone knee (:func:`dead_zone_knee`); ``r_k <= 0`` leaves ``duties`` unchanged.
+    d_k, r_k : (4,) float64
+        Each valve's dead-zone knee (:func:`dead_zone_knee`); ``r_k <= 0`` leaves that valve's
+        duty unchanged.
     acc : (4,) float64
         Sigma-delta accumulators [open fraction x periods], updated in place.
     pulse : (4,) float64
@@ -300,8 +308,6 @@ def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: 
         Index of the last carrier period decided; updated. Before the first, -1 and every
         accumulator at ``r_k / 2`` (:func:`pneutune.control.law.darc.init_state`).
     """
-    if not r_k > 0.0:
-        return
     n_next = np.floor((t + Ts) / period - 1.0e-9)
     m = n_next - last[0]
     if m > 0.0:
@@ -310,19 +316,22 @@ def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: 
         last[0] = n_next
         for i in range(4):
             ui = u[i]
+            rk = r_k[i]
+            if not rk > 0.0:
+                continue
             if not ui > 0.0:
-                acc[i] = 0.5 * r_k
+                acc[i] = 0.5 * rk
                 pulse[i] = 0.0
-            elif ui >= r_k:
+            elif ui >= rk:
                 pulse[i] = 1.0
             else:
                 acc[i] += m * ui
-                if acc[i] >= 0.5 * m * r_k:
+                if acc[i] >= 0.5 * m * rk:
                     pulse[i] = 1.0
-                    acc[i] -= m * r_k
+                    acc[i] -= m * rk
                 else:
                     pulse[i] = 0.0
     for i in range(4):
         ui = u[i]
-        if ui > 0.0 and ui < r_k:
-            duties[i] = d_k if pulse[i] > 0.5 else 0.0
+        if ui > 0.0 and ui < r_k[i]:
+            duties[i] = d_k[i] if pulse[i] > 0.5 else 0.0

@@ -74,13 +74,14 @@ SLOTS: tuple[tuple[str, int, str], ...] = (
     ("CFG_PID_KI", 1, "pid ki"),
     ("CFG_PID_KD", 1, "pid kd"),
     ("CFG_PID_IMAX", 1, "pid integral limit"),
-    ("CFG_PWM_N", 1, "number of PWM curve points m"),
-    ("CFG_PWM_DUTY", PWM_MAX_POINTS, "duty[:m]"),
-    ("CFG_PWM_RATIO", PWM_MAX_POINTS, "ratio[:m]"),
+    ("CFG_PWM_N", 4, "number of points m_v of each valve's PWM curve"),
+    ("CFG_PWM_DUTY", 4 * PWM_MAX_POINTS,
+     "duty[:m_v] of valve v (a_in, a_out, b_in, b_out) from v * PWM_MAX_POINTS"),
+    ("CFG_PWM_RATIO", 4 * PWM_MAX_POINTS, "ratio[:m_v] of valve v, laid out as duty"),
     ("CFG_PWM_PERIOD", 1, "PWM carrier period 1/rig.pwm_hz [s]"),
     ("CFG_DZ_MODE", 1, "dead_zone code (DEAD_ZONE_MODES)"),
-    ("CFG_DZ_DUTY", 1, "duty at the PWM curve's dead-zone knee (duty.dead_zone_knee)"),
-    ("CFG_DZ_RATIO", 1, "open fraction at the knee; 0: the curve has no dead zone"),
+    ("CFG_DZ_DUTY", 4, "duty at each valve curve's dead-zone knee (duty.dead_zone_knee)"),
+    ("CFG_DZ_RATIO", 4, "open fraction at each knee; 0: the curve has no dead zone"),
 )
 
 CFG_LAYOUT, CFG_VARIANT, CFG_POS_FB, CFG_ORIG_ACCEL = 0, 1, 2, 3
@@ -92,10 +93,12 @@ CFG_GAMMA, CFG_RATE_MAX, CFG_THETA_MIN, CFG_THETA_MAX, CFG_THETA_0 = 33, 39, 45,
 CFG_MIN_REF_SPEED, CFG_KM_Q, CFG_KM_R, CFG_KF_Q, CFG_KF_R = 63, 64, 65, 66, 67
 CFG_KM_A, CFG_KM_WQW, CFG_KM_H, CFG_KF_A, CFG_KF_WQW, CFG_KF_H = 68, 77, 86, 89, 93, 97
 CFG_PID_KP, CFG_PID_KI, CFG_PID_KD, CFG_PID_IMAX, CFG_PWM_N = 99, 100, 101, 102, 103
-CFG_PWM_DUTY = 104
-CFG_PWM_RATIO = CFG_PWM_DUTY + PWM_MAX_POINTS
-CFG_PWM_PERIOD = CFG_PWM_RATIO + PWM_MAX_POINTS
-CFG_DZ_MODE, CFG_DZ_DUTY, CFG_DZ_RATIO = CFG_PWM_PERIOD + 1, CFG_PWM_PERIOD + 2, CFG_PWM_PERIOD + 3
+#: Distance between two valves' curves in CFG_PWM_DUTY and CFG_PWM_RATIO.
+PWM_STRIDE: int = PWM_MAX_POINTS
+CFG_PWM_DUTY = 107
+CFG_PWM_RATIO = CFG_PWM_DUTY + 4 * PWM_STRIDE
+CFG_PWM_PERIOD = CFG_PWM_RATIO + 4 * PWM_STRIDE
+CFG_DZ_MODE, CFG_DZ_DUTY, CFG_DZ_RATIO = CFG_PWM_PERIOD + 1, CFG_PWM_PERIOD + 2, CFG_PWM_PERIOD + 6
 
 
 def _offsets() -> int:
@@ -166,11 +169,13 @@ def pack(cfg: ControllerConfig) -> np.ndarray:
     v[CFG_KF_H:CFG_KF_H + 2] = H
     p = cfg.pid
     v[CFG_PID_KP], v[CFG_PID_KI], v[CFG_PID_KD], v[CFG_PID_IMAX] = p.kp, p.ki, p.kd, p.i_max
-    m = len(cfg.pwm.duty)
-    v[CFG_PWM_N] = m
-    v[CFG_PWM_DUTY:CFG_PWM_DUTY + m] = cfg.pwm.duty
-    v[CFG_PWM_RATIO:CFG_PWM_RATIO + m] = cfg.pwm.ratio
+    for i, curve in enumerate(cfg.valve_curves):
+        m = len(curve.duty)
+        v[CFG_PWM_N + i] = m
+        at = i * PWM_STRIDE
+        v[CFG_PWM_DUTY + at:CFG_PWM_DUTY + at + m] = curve.duty
+        v[CFG_PWM_RATIO + at:CFG_PWM_RATIO + at + m] = curve.ratio
+        v[CFG_DZ_DUTY + i], v[CFG_DZ_RATIO + i] = dead_zone_knee(curve.duty, curve.ratio)
     v[CFG_PWM_PERIOD] = rig.pwm_period
     v[CFG_DZ_MODE] = DEAD_ZONE_MODES.index(cfg.dead_zone)
-    v[CFG_DZ_DUTY], v[CFG_DZ_RATIO] = dead_zone_knee(cfg.pwm.duty, cfg.pwm.ratio)
     return v

@@ -499,7 +499,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     metrics = compute_metrics(scenario, rec.Ts, ref, rec.sensors_, rec.duties_, rec.state_,
                               np.asarray(a.theta_min), np.asarray(a.theta_max),
                               float(rig_meta["x_min"]), float(rig_meta["x_max"]), status,
-                              duty_top=controller.pwm.top_duty)
+                              duty_top=np.asarray(controller.top_duties))
     rec.segments_.insert(0, (0.0, scenario.name, "scenario",
                              {"description": scenario.description,
                               "duration": float(ref.shape[0] * rec.Ts)}))

@@ -226,10 +226,11 @@ def valve_modes(duties: np.ndarray) -> np.ndarray:
 def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensors: np.ndarray,
                     duties: np.ndarray, control_state: np.ndarray, theta_min: np.ndarray,
                     theta_max: np.ndarray, x_min: float, x_max: float, status: str,
-                    duty_top: float | None = None) -> Metrics:
+                    duty_top: float | np.ndarray | None = None) -> Metrics:
     """The indices of Sec. 5.1 over the last three periods, plus health checks.
 
-    ``duty_top`` is the duty a full opening commands (``controller.pwm.top_duty``), for
+    ``duty_top`` is the duty from which a valve is fully open, one for all or one per valve
+    (``controller.top_duties``), for
     :attr:`Metrics.full_open` and :attr:`Metrics.flow_limited`; None leaves them nan.
     """
     n = sensors.shape[0]
@@ -407,7 +408,7 @@ def _result(run: PreparedRun, controller: ControllerConfig, code: int, sensors: 
     metrics = compute_metrics(run.scenario, run.Ts, run.reference, sensors[:done], duties[:done],
                               cstate[:done], np.asarray(a.theta_min), np.asarray(a.theta_max),
                               pcfg.rig.x_min, pcfg.rig.x_max, status,
-                              duty_top=controller.pwm.top_duty)
+                              duty_top=np.asarray(controller.top_duties))
     return ClosedLoopResult(run.scenario, pcfg, controller, run.seed, run.Ts, run.reference,
                             sensors[:done], duties[:done], cstate[:done],
                             truth[:done] if truth is not None else None, metrics)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pneutune.control.constants import MODEL_SCHEMA, VALVES
 from pneutune.control.contracts.model import ModelConfig, SourceInfo
-from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.contracts.plant import PlantConfig, ValveConfig
 from pneutune.control.physics.pwm import sample_pwm_curve
 
 
@@ -18,15 +18,21 @@ def model_from_plant(plant: PlantConfig, rel_margin: float = 0.2,
                      source: SourceInfo | None = None) -> ModelConfig:
     """The model a perfect identification of ``plant`` would give (truth, for tests and tools).
 
-    The PWM curve is the plant's (valve a_in's timing,
-    :func:`~pneutune.control.physics.pwm.sample_pwm_curve`), A_f = F_C, and every range is the
-    value ± ``rel_margin``.
+    The PWM curves are the plant's (:func:`~pneutune.control.physics.pwm.sample_pwm_curve`): the
+    top-level ``pwm`` from valve a_in's timing, and ``valves.<v>.pwm`` for each valve whose
+    timing gives another curve. A_f = F_C, and every range is the value ± ``rel_margin``.
     """
     m = rel_margin
 
     def rng(v: float, lo_floor: float = 0.0) -> tuple[float, float]:
         return max(lo_floor, v * (1.0 - m)), v * (1.0 + m)
 
+    def curve(v: ValveConfig) -> dict[str, list[float]]:
+        duty, ratio = sample_pwm_curve(plant.rig.pwm_period, v.delay_on, v.delay_off,
+                                       v.min_pulse)
+        return {"duty": [float(x) for x in duty], "ratio": [float(x) for x in ratio]}
+
+    shared = curve(plant.valves.a_in)
     valves = {}
     for name, v in zip(VALVES, plant.valves.ordered(), strict=True):
         c_lo, c_hi = rng(v.C)
@@ -34,9 +40,9 @@ def model_from_plant(plant: PlantConfig, rel_margin: float = 0.2,
         valves[name] = {"C": v.C, "b": v.b, "C_min": c_lo, "C_max": min(c_hi, 1e-6),
                         "b_min": b_lo, "b_max": min(b_hi, 0.95), "delay_on": v.delay_on,
                         "delay_off": v.delay_off, "min_pulse": v.min_pulse}
-    v0 = plant.valves.a_in
-    duty, ratio = sample_pwm_curve(plant.rig.pwm_period, v0.delay_on, v0.delay_off,
-                                   v0.min_pulse)
+        own = curve(v)
+        if own != shared:
+            valves[name]["pwm"] = own
     f = plant.friction
     M = plant.total_mass
     d = plant.disturbance
@@ -49,7 +55,7 @@ def model_from_plant(plant: PlantConfig, rel_margin: float = 0.2,
                    {"log": "<truth>", "sha256": "0" * 64, "duration_s": 0.0}),
         "rig": plant.rig.model_dump(),
         "valves": valves,
-        "pwm": {"duty": [float(x) for x in duty], "ratio": [float(x) for x in ratio]},
+        "pwm": shared,
         "friction": {"F_S": f.F_S, "F_C": f.F_C, "v_s": f.v_s, "alpha": f.alpha, "b_v": f.b_v,
                      "A_f": f.F_C,
                      "ranges": {"F_S": list(rng(f.F_S)), "F_C": list(rng(f.F_C)),
