@@ -44,6 +44,7 @@ from pneutune.control.contracts.yamlio import write_yaml
 from pneutune.control.errors import ConfigError
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
+from .guard import GuardResult, guarded_best
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .report import Comparison, compare, write_report
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
@@ -120,9 +121,11 @@ class TuneResult:
     Attributes
     ----------
     controller : ControllerConfig
-        The best trial's controller, with its provenance.
+        The chosen trial's controller, with its provenance.
     study : optuna.Study
     best : FrozenTrial
+        The chosen trial: the study's best unless it failed the held-out guard
+        (:mod:`pneutune.tune.guard`).
     comparison : Comparison
         The tuned and the paper's controllers on every scenario and draw.
     feasibility : Feasibility
@@ -143,6 +146,7 @@ class TuneResult:
     run: RunSummary
     paths: dict[str, str]
     info: dict[str, Any]
+    guard: GuardResult | None = None
 
     def summary(self) -> dict[str, Any]:
         """The object ``tune --json`` prints."""
@@ -159,6 +163,9 @@ class TuneResult:
                      "params": self.best.params},
             "narrowed": [list(b) for b in self.feasibility.box],
             "feasibility": self.feasibility.notes(),
+            "guard": None if self.guard is None else {
+                "seed": self.guard.seed, "passed": self.guard.passed,
+                "rejected": [{"trial": n, "failure": why} for n, why in self.guard.rejected]},
             **self.comparison.summary(),
         }
 
@@ -314,11 +321,17 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         raise ConfigError(name, "", f"study {study_name!r}: no trial completed "
                           f"({counts['PRUNED']} pruned, {counts['FAIL']} failed): "
                           f"{failure_summary(study)}; check the model's ranges and fit")
-    best = study.best_trial
+    dead_zone = settings.objective.dead_zone
+    guard = guarded_best(study, model_cfg, settings.seed, objective_settings,
+                         lambda p: controller_from_params(model_cfg, p, dead_zone=dead_zone),
+                         jobs=jobs)
+    for line in guard.notes():
+        if notes is not None:
+            notes(line)
+    best = guard.trial
     prov = provenance(model_sha, study_name, best.number, float(best.value), settings.seed,
-                      feas.notes())
-    tuned = controller_from_params(model_cfg, best.params, prov,
-                                   dead_zone=settings.objective.dead_zone)
+                      [*feas.notes(), *guard.notes()])
+    tuned = controller_from_params(model_cfg, best.params, prov, dead_zone=dead_zone)
     paper = load_controller(PAPER_CONTROLLER)
     objective = TuneObjective(model_cfg, settings.seed, objective_settings, jobs=jobs)
     comp = compare(objective, tuned, paper)
@@ -328,6 +341,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         "n_trials": settings.trials, "counts": counts, "controller": paths["controller"],
         "paper_path": paper_path(), "plant_nominal": paths["plant_nominal"],
         "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
+        "guard": guard.notes(),
         "sampler": describe(settings.sampler),
     }
     paths["report"] = str(write_report(out, objective, study, best, tuned, paper, comp,
@@ -335,7 +349,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler}
-    return TuneResult(tuned, study, best, comp, feas, run, paths, info)
+    return TuneResult(tuned, study, best, comp, feas, run, paths, info, guard)
 
 
 def _write(out: Path, name: str, model_sha: str, study_name: str, best: FrozenTrial,

@@ -328,6 +328,16 @@ def _feasibility(notes: list[str]) -> list[str]:
             *[f"- {n}" for n in notes], ""]
 
 
+def _guard(notes: list[str]) -> list[str]:
+    """The section on the held-out guard (nothing when the study's best passed it)."""
+    if not notes:
+        return []
+    return ["## Held-out guard", "",
+            "The best trials were run on plants and noise the study never saw "
+            "(`pneutune.tune.guard`); a trial is kept only if it completes every run:", "",
+            *[f"- {n}" for n in notes], ""]
+
+
 def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
            tuned: ControllerConfig, paper: ControllerConfig, comp: Comparison,
            imp: dict[str, float] | None, info: dict[str, Any]) -> str:
@@ -347,7 +357,8 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         + (f"; sampler: {info['sampler']}" if info.get("sampler") else ""),
         f"- trials: {counts['COMPLETE']} complete, {counts['PRUNED']} pruned, "
         f"{counts['FAIL']} failed (wanted {info['n_trials']} complete + pruned)",
-        f"- best trial: #{best.number}, objective {best.value:.4f}; "
+        f"- {'trial kept by the held-out guard' if info.get('guard') else 'best trial'}: "
+        f"#{best.number}, objective {best.value:.4f}; "
         f"`{info['paper_path']}` on the same plants: {_fmt(comp.paper.value, 4)}"
         + (f"; trial #0 (the paper's gains with the model's θ box): {paper_trial:.4f}"
            if paper_trial is not None else ""),
@@ -359,6 +370,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         f"- controller: `{info['controller']}`; baseline: `{info['paper_path']}`",
         "",
         *_feasibility(info.get("feasibility") or []),
+        *_guard(info.get("guard") or []),
         "## Table 1 on the nominal plant",
         "",
         "Simulated on the model's nominal plant (draw 0, sensor-noise seed "
