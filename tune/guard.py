@@ -10,7 +10,7 @@ run completes.
 
 Only a failure moves the choice, never a better score on the guard draws: re-ranking the five
 best by their held-out objective picked a worse controller on the true plant four times in
-fifteen studies (docs/tuning.md, "Levers measured").
+fifteen studies (docs/tuning.md, "The held-out guard").
 """
 
 from __future__ import annotations
