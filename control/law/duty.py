@@ -32,10 +32,15 @@ PWM inverse
     ratio_j at the minimum pulse) the duty of the jump, so a small demand gives the smallest
     pulse that opens the valve rather than a pulse that never opens it; at or above the curve's
     largest ratio duty 1, the valve always on. The curve reaches its top before duty 1 (0.94
-    on the default plant, where a short off-gap is swallowed by delay_off > delay_on), but it
-    is one curve for four valves: a valve whose delay_off is shorter than its delay_on closes in
-    every off-gap, so a smaller duty would leave the bottleneck valve short of flow exactly where
-    Eq. (33) asks for all of it (fleet plant 4's a_out: 2.6 ms shut per 16.7 ms period at 0.94).
+    on the default plant, where a short off-gap is swallowed by delay_off > delay_on), but a
+    curve shared by the four valves is not every valve's: a valve whose delay_off is shorter
+    than its delay_on closes in every off-gap, so a smaller duty would leave the bottleneck
+    valve short of flow exactly where Eq. (33) asks for all of it (fleet plant 4's a_out: 2.6 ms
+    shut per 16.7 ms period at 0.94).
+One curve per valve
+    Contract 4's ``valves.<v>.pwm`` gives a valve a curve of its own (its delays and minimum
+    pulse); the others use the top-level ``pwm``. :func:`duties_into` inverts each valve on its
+    curve, and each has its own dead-zone knee.
 Dead zone: ``up`` or ``dither`` (contract 4 ``dead_zone``)
     A wanted fraction ``0 < u < r_k`` below the curve's dead-zone knee ``(d_k, r_k)``
     (:func:`dead_zone_knee`) cannot be delivered in one PWM period: a pulse shorter than the
