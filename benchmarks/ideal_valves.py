@@ -11,8 +11,9 @@ and the paper's on the changed plant (noise seed 1000 + plant, as the fleet):
 * ``immediate``: a latched plant with ``pwm_update: immediate`` (a new duty acts at once, not
   at the next 16.7 ms period);
 * ``equal-timing``: every valve with a_in's ``delay_on``, ``delay_off`` and ``min_pulse`` (C
-  and b unchanged), so that the one PWM curve of contract 4 is right for all four valves: what
-  one curve per valve could recover at most;
+  and b unchanged), so that a_in's curve is right for all four valves. It changes the plant (a
+  slow valve becomes as fast as a_in), so it is not a bound on what one curve per valve
+  recovers (docs/tuning.md, "One PWM curve per valve");
 * ``one-curve``: the plant as it is, the model (and so the controller) without the valves' own
   PWM curves (``valves.<v>.pwm``): every valve's duty inverted on a_in's curve, as before
   contract 4 had a curve per valve;
