@@ -96,10 +96,6 @@ class ModelValves(_Strict):
         """The valves in the contract order."""
         return tuple(getattr(self, name) for name in VALVES)
 
-    def curves(self, shared: PwmCurve) -> tuple[PwmCurve, ...]:
-        """Each valve's PWM curve in the contract order: its own, else ``shared``."""
-        return tuple(v.pwm if v.pwm is not None else shared for v in self.ordered())
-
 
 class FrictionRanges(_Strict):
     """Added: [lo, hi] of each Stribeck parameter, for sampling plants."""
