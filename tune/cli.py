@@ -33,7 +33,9 @@ drawn from the model's uncertainty (the nominal plant, two corners of the box, a
 hypercube); per scenario the CVaR of the cost over the draws, averaged over the scenarios. The
 cost is the tracking error relative to the paper's Table 1 plus penalties for valve chattering,
 chamber pressures outside [p0/2, p_s + 0.5 bar] and end-stop contact. 1.0 means "as good as the
-paper's rig on every scenario". An unstable run prunes its trial. docs/tuning.md.
+paper's rig on every scenario". An unstable run prunes its trial. Before writing, the best
+trials are run on plants the study never saw and the first that completes every run is kept
+(the held-out guard; report.md says when it passed over the study's best). docs/tuning.md.
 
 The study lives in a storage (default DIR/study.journal, an Optuna journal file; optuna-dashboard
 opens it). Re-running the same command resumes it: --trials N is the number of finished
