@@ -130,7 +130,7 @@ class ValveIdentifier(Identifier):
     knots_, curves_ : ndarray
         Duty knots (K,) and the effective open fraction of each valve at them (4, K).
     curve_ : ndarray (K,)
-        The mean curve (contract 3 has one ``pwm`` curve).
+        The mean curve (contract 3's top-level ``pwm``; each valve's is ``valves.<v>.pwm``).
     residual_std_ : ndarray (2,)
         RMS window residual of chambers A and B [Pa].
     D_closed_ : (bool, bool)

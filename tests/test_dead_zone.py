@@ -103,6 +103,29 @@ def test_dither_delivers_the_wanted_mean_through_the_plant_valves(update: str,
     assert dithered[0, 0] == d_k
 
 
+def test_dither_uses_each_valves_own_knee() -> None:
+    """One curve per valve: a_in's knee (0.09, 0.15) and b_out's (0.15, 0.25), both wanting 0.05.
+    Over 300 PWM periods a_in pulses in a third of them (0.05 / 0.15), b_out in a fifth
+    (0.05 / 0.25), each with its own knee's duty (the sigma-delta's count is exact to one
+    pulse)."""
+    d_k = np.array([0.09, 0.0, 0.0, 0.15])
+    r_k = np.array([0.15, 0.0, 0.0, 0.25])
+    u = np.array([0.05, 0.0, 0.0, 0.05])
+    acc, pulse, last = 0.5 * r_k, np.zeros(4), np.array([-1.0])
+    periods = 300
+    n = round(periods * PERIOD / TS)
+    seen = np.zeros((n, 4))
+    for k in range(n):
+        d = np.array([0.09, 0.0, 0.0, 0.15])  # what the inverse gives: each valve's knee
+        dither_into(u, d, k * TS, TS, PERIOD, d_k, r_k, acc, pulse, last)
+        seen[k] = d
+    assert set(np.unique(seen[:, 0])) == {0.0, 0.09}
+    assert set(np.unique(seen[:, 3])) == {0.0, 0.15}
+    starts = (np.floor(np.arange(n) * TS / PERIOD) != np.floor((np.arange(n) - 1) * TS / PERIOD))
+    assert np.count_nonzero(seen[starts, 0] > 0) == pytest.approx(periods / 3, abs=1)
+    assert np.count_nonzero(seen[starts, 3] > 0) == pytest.approx(periods / 5, abs=1)
+
+
 def test_dither_leaves_openings_above_the_knee_alone() -> None:
     """u >= r_k is deliverable in one period: the inverse's duty is kept."""
     duty, ratio = (np.array(v) for v in sample_pwm_curve(PERIOD, D_ON, D_OFF, MIN_PULSE, 41))

@@ -53,6 +53,23 @@ def test_guard_passes_over_a_best_trial_that_fails_on_new_plants() -> None:
     assert "trial #0: aborted" in note and "trial #1 (objective 0.6) completes" in note
 
 
+def test_guard_walks_the_trials_by_objective_not_by_number() -> None:
+    """Trials added out of order (#0: 0.7, #1: 0.5 dead, #2: 0.6): the guard tries #1 first, then
+    keeps #2; #0 is never reached."""
+    study = _study([(0.7, 65.0), (0.5, DEAD_K1), (0.6, 65.0)])
+    g = guarded_best(study, MODEL, 7, SETTINGS, _make)
+    assert g.passed and g.trial.number == 2 and [n for n, _ in g.rejected] == [1]
+
+
+def test_guard_tries_at_most_n_trials() -> None:
+    """Seven dead trials and a good one ranked eighth: the default five are tried, none passes,
+    and the study's best is kept with the warning."""
+    study = _study([(0.1 * (k + 1), DEAD_K1) for k in range(7)] + [(0.9, 65.0)])
+    g = guarded_best(study, MODEL, 7, SETTINGS, _make)
+    assert not g.passed and g.trial.number == 0
+    assert [n for n, _ in g.rejected] == [0, 1, 2, 3, 4]
+
+
 def test_guard_keeps_the_best_when_it_passes_and_says_nothing() -> None:
     study = _study([(0.5, 65.0), (0.6, DEAD_K1)])
     g = guarded_best(study, MODEL, 7, SETTINGS, _make)

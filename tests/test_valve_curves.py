@@ -15,7 +15,7 @@ import pytest
 
 from pneutune.control.contracts.controller import PAPER_CONTROLLER, load_controller
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.law.duty import pwm_inverse
+from pneutune.control.law.duty import dead_zone_knee, pwm_inverse
 from pneutune.control.physics.pwm import sample_pwm_curve
 from pneutune.control.plant.dynamics import initial_state
 from pneutune.control.plant.params import pack_plant
@@ -54,8 +54,11 @@ def test_truth_model_has_a_curve_only_for_a_valve_unlike_a_in() -> None:
     assert model.valves.b_out.pwm.ratio == pytest.approx(ratio, abs=1e-15)
     cfg = _controller(per_valve=True)
     assert cfg.valves.b_out.pwm == model.valves.b_out.pwm and cfg.valves.a_in.pwm is None
-    # the knee: b_out's smallest opening pulse is 2.5 ms of 16.7 ms, a_in's 1.5 ms
-    assert cfg.valve_curves[3].ratio[0] == 0.0
+    # the knees: b_out's smallest opening pulse is 2.5 ms of 16.7 ms (duty 0.15), a_in's 1.5 ms
+    assert dead_zone_knee(cfg.valve_curves[3].duty, cfg.valve_curves[3].ratio)[0] == \
+        pytest.approx(0.15, abs=1e-9)
+    assert dead_zone_knee(cfg.valve_curves[0].duty, cfg.valve_curves[0].ratio)[0] == \
+        pytest.approx(0.09, abs=1e-9)
     assert pwm_inverse(0.01, np.array(cfg.valve_curves[3].duty),
                        np.array(cfg.valve_curves[3].ratio)) == pytest.approx(0.15, abs=1e-9)
     assert pwm_inverse(0.01, np.array(cfg.pwm.duty),

@@ -341,7 +341,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         "n_trials": settings.trials, "counts": counts, "controller": paths["controller"],
         "paper_path": paper_path(), "plant_nominal": paths["plant_nominal"],
         "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
-        "guard": guard.notes(),
+        "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
     }
     paths["report"] = str(write_report(out, objective, study, best, tuned, paper, comp,

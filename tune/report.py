@@ -333,8 +333,8 @@ def _guard(notes: list[str]) -> list[str]:
     if not notes:
         return []
     return ["## Held-out guard", "",
-            "The best trials were run on plants and noise the study never saw "
-            "(`pneutune.tune.guard`); a trial is kept only if it completes every run:", "",
+            "The best trials were run, best first, on plants and noise the study never saw "
+            "(`pneutune.tune.guard`), to keep the first that completes every run:", "",
             *[f"- {n}" for n in notes], ""]
 
 
@@ -357,7 +357,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         + (f"; sampler: {info['sampler']}" if info.get("sampler") else ""),
         f"- trials: {counts['COMPLETE']} complete, {counts['PRUNED']} pruned, "
         f"{counts['FAIL']} failed (wanted {info['n_trials']} complete + pruned)",
-        f"- {'trial kept by the held-out guard' if info.get('guard') else 'best trial'}: "
+        f"- {'trial kept by the held-out guard' if info.get('guard_moved') else 'best trial'}: "
         f"#{best.number}, objective {best.value:.4f}; "
         f"`{info['paper_path']}` on the same plants: {_fmt(comp.paper.value, 4)}"
         + (f"; trial #0 (the paper's gains with the model's θ box): {paper_trial:.4f}"
