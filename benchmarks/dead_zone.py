@@ -37,6 +37,9 @@ def variant(paper: ControllerConfig, kind: str) -> ControllerConfig:
     """The paper's controller with the PWM curve that rounds ``kind`` (module docstring)."""
     if kind == "up":
         return paper
+    if any(v.pwm is not None for v in paper.valves.ordered()):
+        raise SystemExit("dead_zone.py rewrites the top-level pwm only; this controller has "
+                         "valve curves of its own (valves.<v>.pwm)")
     d, r = list(paper.pwm.duty), list(paper.pwm.ratio)
     j = next(i for i in range(1, len(d)) if d[i] == d[i - 1] and r[i] > r[i - 1])  # the jump
     dj, rj = d[j], r[j]

@@ -189,7 +189,8 @@ class DarcOracle:
         else:
             q_lf = 0.0
             fr = [0.0, 0.0, 0.0, 0.0]
-        duties = np.array([pwm_inverse(f, list(cfg.pwm.duty), list(cfg.pwm.ratio)) for f in fr])
+        duties = np.array([pwm_inverse(f, list(c.duty), list(c.ratio))  # each valve's curve
+                           for f, c in zip(fr, cfg.valve_curves, strict=True)])
         s.f_pd_prev = F_pd
         s.a_r_prev = a_r
         s.n += 1

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from darc_oracle import DarcOracle, f_pd
 
-from pneutune.control.contracts.controller import load_controller
+from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.law.darc import (
     MEAS_SIZE,
     S_A_R_PREV,
@@ -28,6 +28,7 @@ from pneutune.control.law.darc import (
     step_into,
 )
 from pneutune.control.law.layout import CFG_LAYOUT, pack
+from pneutune.control.physics.pwm import sample_pwm_curve
 
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 VARIANTS = ("modified_darc", "original_darc", "direct_diff", "pid")
@@ -82,6 +83,33 @@ def test_step_matches_oracle(variant: str, position_feedback: str) -> None:
                                    atol=1e-12)
         cases.add(int(state[S_CASE]))
     assert cases & {2, 4}, "the run should exercise the PWM cases of Eq. (33)"
+
+
+def test_step_matches_oracle_with_a_curve_per_valve() -> None:
+    """Four valves with four timings (minimum pulses 1-3 ms, delays 1-4 ms, as the fleet's), each
+    valve inverted on its own curve: the compiled step's duties equal the oracle's, which
+    inverts each valve on ``cfg.valve_curves``, over 400 steps; the valves' duties differ for the
+    same Eq. (33) fraction."""
+    timings = ((1.0e-3, 2.0e-3, 1.0e-3), (3.5e-3, 1.5e-3, 2.5e-3), (2.0e-3, 4.0e-3, 2.0e-3),
+               (4.0e-3, 3.0e-3, 3.0e-3))
+    data = _cfg("modified_darc").to_dict()
+    for name, (d_on, d_off, m_p) in zip(("a_in", "a_out", "b_in", "b_out"), timings, strict=True):
+        duty, ratio = sample_pwm_curve(1.0 / 60.0, d_on, d_off, m_p)
+        data["valves"][name]["pwm"] = {"duty": [float(x) for x in duty],
+                                       "ratio": [float(x) for x in ratio]}
+    cfg = ControllerConfig.model_validate(data)
+    vec = pack(cfg)
+    ms = _measurements(seed=7)
+    state = init_state(cfg, float(ms[0, 1]), 3.0e5, 3.0e5)
+    oracle = DarcOracle(cfg, float(ms[0, 1]))
+    differ = 0
+    for k, meas in enumerate(ms):
+        state, duties = step(state, meas, vec)
+        np.testing.assert_allclose(duties, oracle.step(meas), rtol=0, atol=1e-9,
+                                   err_msg=f"step {k}")
+        pair = (duties[0], duties[3]) if duties[0] > 0 else (duties[1], duties[2])
+        differ += pair[0] != pair[1]
+    assert differ > 0
 
 
 def test_step_into_equals_step() -> None:
