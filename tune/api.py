@@ -335,6 +335,9 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     paper = load_controller(PAPER_CONTROLLER)
     objective = TuneObjective(model_cfg, settings.seed, objective_settings, jobs=jobs)
     comp = compare(objective, tuned, paper)
+    behind = behind_paper(comp, best.number, settings)
+    if behind is not None and notes is not None:
+        notes(behind)
     paths = _write(out, name, model_sha, study_name, best, tuned, objective, comp, settings)
     report_info = {
         "model": name, "model_sha256": model_sha, "storage": redact_url(storage),
@@ -343,13 +346,32 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
         "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
+        "behind_paper": behind,
     }
     paths["report"] = str(write_report(out, objective, study, best, tuned, paper, comp,
                                        report_info))
     info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
-            "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler}
+            "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
+            "behind_paper": behind}
     return TuneResult(tuned, study, best, comp, feas, run, paths, info, guard)
+
+
+def behind_paper(comp: Comparison, trial: int, settings: TuneSettings) -> str | None:
+    """What to say when the kept trial scores worse than the paper's controller on the study's
+    own plants and noise, or None when it does not.
+
+    The study then has not found the region the paper's controller.yaml sits in (its θ box,
+    valves and PWM curve are the paper rig's, not the model's). controller.yaml is still the
+    kept trial, because it is made for this model; the line says what the user can do.
+    """
+    t, p = comp.tuned.value, comp.paper.value
+    if p is None or not (t > p):
+        return None
+    return (f"warning: trial #{trial} scores {t:.4g} on the study's plants, worse than the "
+            f"paper's controller ({p:.4g}): {settings.trials} trials did not find a better "
+            f"region; resume with a larger --trials (the finished trials are kept) or try "
+            f"another --seed")
 
 
 def _write(out: Path, name: str, model_sha: str, study_name: str, best: FrozenTrial,
