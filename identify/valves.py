@@ -71,6 +71,13 @@ def pwm_window(Ts: float, pwm_hz: float, lo: int = 8, hi: int = 60) -> int:
     return best
 
 
+def _longest_run(flags: np.ndarray) -> int:
+    """Length of the longest run of True in ``flags``."""
+    padded = np.concatenate([[0], np.asarray(flags, dtype=np.int8), [0]])
+    edges = np.flatnonzero(np.diff(padded))
+    return int(np.max(edges[1::2] - edges[0::2])) if edges.size else 0
+
+
 def default_knots() -> np.ndarray:
     """Duty knots of the curves: 0.0125 apart below 0.2 (dead zone), 0.025 above."""
     return np.unique(np.round(np.concatenate([np.arange(0.0, 0.2, 0.0125),
@@ -142,6 +149,8 @@ class ValveIdentifier(Identifier):
         Window length [samples].
     max_duty_ : ndarray (4,)
         Highest duty each valve was commanded in the fitted part.
+    full_open_s_ : ndarray (4,)
+        Longest stretch of consecutive fitted samples each valve was commanded duty 1 [s].
     ratios_ : ndarray (N-1, 4)
         Open fraction of each valve in each sample used by the final fit (the PWM curves', or
         the exact opening of the timing stage).
@@ -429,6 +438,8 @@ class ValveIdentifier(Identifier):
                                f"PWM curve are only separable through the curve's shape"]
         self.notes_ = list(getattr(self, "notes_", []))
         self.max_duty_ = np.array([float(np.max(data.u[mask, i])) for i in range(4)])
+        self.full_open_s_ = np.array([_longest_run(mask & (data.u[:, i] >= 0.999)) * data.Ts
+                                      for i in range(4)])
         self.knots_ = default_knots() if self.knots is None else np.asarray(self.knots, float)
         self._prepare(data, mask)
         curves = np.tile(self.knots_, (4, 1))  # start: r(u) = u

@@ -300,3 +300,14 @@ def test_mass_within_6_percent(case):
     assert r.model.mass == pytest.approx(plant.total_mass, rel=0.06), name
     assert "lag" in r.mass_basis, (name, r.mass_basis)
     assert not any(n.startswith("mass: not") for n in r.model.notes), name
+
+
+def test_longest_run_of_full_duty() -> None:
+    """identify/valves.py::_longest_run, which decides whether a log held a valve fully open long
+    enough to pin its C and b (FULL_OPEN_PIN_S): counts consecutive True samples."""
+    from pneutune.identify.valves import _longest_run
+
+    assert _longest_run(np.array([], dtype=bool)) == 0
+    assert _longest_run(np.array([False, False])) == 0
+    assert _longest_run(np.array([True, True, False, True, True, True, False])) == 3
+    assert _longest_run(np.array([False, True, True, True, True])) == 4

@@ -77,10 +77,32 @@ def test_paper_params_give_the_sec51_gains_on_the_model() -> None:
 
 def test_space_is_log_scaled_around_the_paper_values() -> None:
     space = search_space(MODEL)
-    assert len(space.params) == 14
+    assert len(space.params) == 15
     for p in space.params:
+        if p.name == "adaptation.theta_0.b_v":  # from the model's nominal θ3 up (docs/tuning.md)
+            assert p.log and p.low == p.paper == MODEL.theta.nominal[2], p
+            assert p.high == pytest.approx(4.0 * p.low, rel=1e-15), p
+            continue
         assert p.log and p.low < p.paper < p.high, p
         assert p.high / p.low >= 10.0, p  # at least a decade
+
+
+def test_theta_0_of_b_v_moves_the_start_and_keeps_the_true_b_v_in_the_box() -> None:
+    """θ̂3(0) searched: θ_0 of b_v is the trial's value, θ_max moves up in proportion, θ_min and
+    every other θ stay the model's (Eq. 9 needs the true θ in the box)."""
+    space = search_space(MODEL)
+    b_v0 = MODEL.theta.nominal[2]  # 3500 N s/m on the default plant, box [2800, 4200]
+    assert (MODEL.theta.min[2], MODEL.theta.max[2]) == pytest.approx((2800.0, 4200.0))
+    for factor, top in ((1.0, 4200.0), (1.2, 1.2 * 4200.0), (3.0, 3.0 * 4200.0)):
+        cfg = controller_from_params(MODEL, {**space.paper_params(),
+                                             "adaptation.theta_0.b_v": factor * b_v0})
+        a = cfg.adaptation
+        assert a.theta_0[2] == pytest.approx(factor * b_v0, rel=1e-12)
+        assert a.theta_max[2] == pytest.approx(top, rel=1e-12)
+        assert a.theta_min == MODEL.theta.min
+        assert a.theta_max[:2] + a.theta_max[3:] == MODEL.theta.max[:2] + MODEL.theta.max[3:]
+        assert params_from_controller(cfg)["adaptation.theta_0.b_v"] == pytest.approx(
+            factor * b_v0, rel=1e-12)
 
 
 def test_kalman_gain_depends_only_on_q_over_r() -> None:

@@ -28,6 +28,10 @@ Tune the modified DARC (Qian et al. 2014, Secs. 3-5) on an identified model (mod
 contract 3) with Optuna, in closed-loop simulation, and write DIR/controller.yaml (contract 4)
 and DIR/report.md.
 
+Searched (15 parameters, log scales): the gains k1-k3, h2, h3 and r3, the six adaptation rates
+Γ, the two Kalman filters' Q, and the viscous estimate's start θ̂3(0), from the model's nominal
+b_v up to four times it (the rest of θ's box and start are the model's).
+
 Objective: the four Table-1 scenarios and the disturbance scenario, each simulated on plants
 drawn from the model's uncertainty (the nominal plant, two corners of the box, a Latin
 hypercube); per scenario the CVaR of the cost over the draws, averaged over the scenarios. The

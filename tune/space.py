@@ -1,6 +1,6 @@
 """The search space of ``tune`` and the map from a trial's parameters to a controller.yaml.
 
-What is searched (14 parameters, named by their controller.yaml key path; docs/tuning.md):
+What is searched (15 parameters, named by their controller.yaml key path; docs/tuning.md):
 
 * ``gains.k1``, ``gains.k2``, ``gains.k3`` -- the backstepping gains of Eqs. (13), (17), (26).
 * ``gains.h2``, ``gains.h3`` with ``eps2``/``eps3`` fixed at the paper's 0.05 and 250 (Sec. 5.1).
@@ -14,17 +14,26 @@ What is searched (14 parameters, named by their controller.yaml key path; docs/t
 * ``gains.r3`` with ``r2`` = 1 fixed: r2 and r3 enter the law through the ratio r2/r3 in
   ``Q_Lda`` (Eq. 26) and as factors of τ (Eq. 26), which Γ absorbs; only the ratio matters.
 * ``adaptation.gamma.<θ_i>`` -- the six diagonal entries of Γ (Eq. 9).
+* ``adaptation.theta_0.b_v`` -- the initial estimate θ̂3(0) of the viscous coefficient, from the
+  model's nominal θ3 up to four times it (the first trial: the nominal). θ3 multiplies the
+  velocity in the model compensation of Eq. (15). On a model with wide, honest ranges from a
+  short closed-loop log (fleet plant 1) no gains beat the paper's controller without a larger
+  start, and over a 12 s scenario θ̂3 does not get there by adaptation (docs/tuning.md,
+  "θ̂3(0)"). θ_max of b_v moves up in proportion (θ_max θ̂3(0) / θ3 nominal), so that the box
+  keeps its room to adapt upwards; θ_min stays the model's, so the true b_v stays inside the
+  box (Eq. 9's requirement).
 * ``kalman.motion.Q`` and ``kalman.force.Q`` -- the process-noise variances of the two filters
   of Sec. 4. Their R are fixed: a Kalman filter's gains depend only on Q/R (the initial
   covariance is proportional to R too), so searching R as well would be a redundant dimension.
   The motion filter's R is the position-sensor variance of the model (``sensors.x_noise²``, the
   paper's 1e-10 m² when the model has none); the force filter's R is the paper's 1e-4 N².
 
-Every range spans one to three decades around the paper's value and is sampled on a log scale.
-Not searched: θ_min, θ_max, θ_0 (from model.yaml), the rate limits θ̇_M and ``min_ref_speed``
-(the paper's Sec. 5.1/5.3 values), ``position_feedback`` (``measured``, docs/controller.md),
-``dead_zone`` (``up`` unless ``tune --dead-zone dither``: fixed for a study, not searched, because
-dithering measured worse on every fleet plant tried, docs/tuning.md).
+Every range but θ̂3(0)'s spans one to three decades around the paper's value; all are sampled
+on a log scale. Not searched: θ_min, θ_max and θ_0 other than θ3's (from model.yaml), the rate
+limits θ̇_M and ``min_ref_speed`` (the paper's Sec. 5.1/5.3 values), ``position_feedback``
+(``measured``, docs/controller.md), ``dead_zone`` (``up`` unless ``tune --dead-zone dither``:
+fixed for a study, not searched, because dithering measured worse on every fleet plant tried,
+docs/tuning.md).
 """
 
 from __future__ import annotations
@@ -53,6 +62,10 @@ PAPER_MOTION_R: float = 1.0e-10
 PAPER_FORCE_R: float = 1.0e-4
 #: The paper's Q/R of both filters (3100 / 1e-4) [1/s^4].
 PAPER_Q_OVER_R: float = 3.1e7
+#: Index of the viscous coefficient b_v in θ (THETA_NAMES).
+THETA_B_V: int = 2
+#: θ̂3(0) is searched from the model's nominal θ3 up to this factor times it [-].
+THETA_0_B_V_SPAN: float = 4.0
 #: Headroom of the supervisor's pressure limit over the supply [Pa].
 P_MAX_MARGIN: float = 0.5e5
 #: Longest sensor silence the runtime tolerates (5 samples of 4 ms) [s].
@@ -200,11 +213,21 @@ def search_space(model: ModelConfig, variant: str = "modified_darc") -> SearchSp
     for name, (lo, hi), paper, unit in zip(THETA_NAMES, gamma_range, gamma_paper, _GAMMA_UNITS,
                                            strict=True):
         params.append(ParamSpec(f"adaptation.gamma.{name}", lo, hi, True, unit, paper))
+    b_v0 = _b_v_start(model)
+    params.append(ParamSpec("adaptation.theta_0.b_v", b_v0, THETA_0_B_V_SPAN * b_v0, True,
+                            "N s/m", b_v0))
     params.append(motion_q)
     # Q/R of the force filter over 1e4..1e10 1/s^4: bandwidth ~ (Q/R)^(1/4), 10..316 rad/s.
     params.append(ParamSpec("kalman.force.Q", 1.0e4 * r_f, 1.0e10 * r_f, True, "N^2/s^4",
                             PAPER_Q_OVER_R * r_f))
     return SearchSpace(tuple(params), r_m, r_f)
+
+
+def _b_v_start(model: ModelConfig) -> float:
+    """Low end of the θ̂3(0) range: the model's nominal θ3, or the top of its box where the
+    nominal is not positive (a log range needs a positive start) [N s/m]."""
+    b_v0 = model.theta.nominal[THETA_B_V]
+    return b_v0 if b_v0 > 0.0 else max(model.theta.max[THETA_B_V], 1.0)
 
 
 def variant_of(params: Mapping[str, float]) -> str:
@@ -249,7 +272,13 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
     if missing:
         raise KeyError(f"parameters missing: {missing}")
     th = model.theta
-    theta_0 = [_inside(lo, v, hi) for lo, v, hi in zip(th.min, th.nominal, th.max, strict=True)]
+    nominal, theta_max = list(th.nominal), list(th.max)
+    if "adaptation.theta_0.b_v" in params:
+        nominal[THETA_B_V] = params["adaptation.theta_0.b_v"]
+        # the box's top moves up with the start, in proportion (unchanged at the nominal)
+        theta_max[THETA_B_V] = max(theta_max[THETA_B_V], nominal[THETA_B_V]
+                                   * th.max[THETA_B_V] / _b_v_start(model))
+    theta_0 = [_inside(lo, v, hi) for lo, v, hi in zip(th.min, nominal, theta_max, strict=True)]
     rig = model.rig
     if variant == "pid":  # the DARC blocks are required by contract 4 but unused: the paper's
         darc = search_space(model).paper_params()
@@ -272,7 +301,7 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
         "adaptation": {
             "gamma": [params[f"adaptation.gamma.{n}"] for n in THETA_NAMES],
             "rate_max": list(PAPER_RATE_MAX),
-            "theta_min": list(th.min), "theta_max": list(th.max), "theta_0": theta_0,
+            "theta_min": list(th.min), "theta_max": theta_max, "theta_0": theta_0,
             "min_ref_speed": PAPER_MIN_REF_SPEED,
         },
         "kalman": {"motion": {"Q": params["kalman.motion.Q"], "R": space.R_motion},
@@ -316,6 +345,7 @@ def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
            "gains.h3": g.h3, "gains.r3": g.r3}
     for name, value in zip(THETA_NAMES, cfg.adaptation.gamma, strict=True):
         out[f"adaptation.gamma.{name}"] = value
+    out["adaptation.theta_0.b_v"] = cfg.adaptation.theta_0[THETA_B_V]
     out["kalman.motion.Q"] = cfg.kalman.motion.Q
     out["kalman.force.Q"] = cfg.kalman.force.Q
     return out
