@@ -62,8 +62,8 @@ PAPER_MOTION_R: float = 1.0e-10
 PAPER_FORCE_R: float = 1.0e-4
 #: The paper's Q/R of both filters (3100 / 1e-4) [1/s^4].
 PAPER_Q_OVER_R: float = 3.1e7
-#: Index of the viscous coefficient b_v in θ (THETA_NAMES).
-THETA_B_V: int = 2
+#: Index of the viscous coefficient b_v in θ.
+THETA_B_V: int = THETA_NAMES.index("b_v")
 #: θ̂3(0) is searched from the model's nominal θ3 up to this factor times it [-].
 THETA_0_B_V_SPAN: float = 4.0
 #: Headroom of the supervisor's pressure limit over the supply [Pa].
