@@ -30,6 +30,10 @@ THETA_NAMES: tuple[str, ...] = ("M", "F_n", "b_v", "A_f", "D_an", "D_bn")
 #: Units of θ's components, in the same order.
 THETA_UNITS: tuple[str, ...] = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
 
+#: A valve whose b range (``b_max - b_min`` in model.yaml) is wider than this is weakly
+#: identified: ``identify`` says so, and ``tune`` then searches θ̂3(0) (docs/tuning.md) [-].
+WEAK_B_SPAN: float = 0.2
+
 #: Schema identifiers of the file contracts.
 LOG_SCHEMA = "pneutune.log/1"
 PLANT_SCHEMA = "pneutune.plant/1"

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pneutune.control.constants import MODEL_SCHEMA, VALVES
+from pneutune.control.constants import MODEL_SCHEMA, VALVES, WEAK_B_SPAN
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError, LogError
@@ -429,7 +429,7 @@ def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: Frict
             b_basis += (f", at least ±{PARTIAL_B_ERROR:g} (never held fully open for "
                         f"{FULL_OPEN_PIN_S:g} s)")
             unsupported.add(f"valves.{name}.b")
-        if b_hi - b_lo > 0.2:
+        if b_hi - b_lo > WEAK_B_SPAN:
             unsupported.add(f"valves.{name}.b")
             b_basis = "weakly identified: " + b_basis
         if b_hi - b_lo > 0.5:

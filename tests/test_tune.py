@@ -20,7 +20,9 @@ from tune_helpers import QUICK, load_study, only_study_name, write_truth_model
 
 from pneutune.control.cli.common import run_cli
 from pneutune.control.cli.simulate import main as simulate_main
+from pneutune.control.constants import WEAK_B_SPAN
 from pneutune.control.contracts.controller import ProvenanceConfig, load_controller
+from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.contracts.yamlio import load_yaml_mapping, write_yaml
 from pneutune.control.law.kalman import motion_model, process_cov, steady_state_gain
@@ -43,6 +45,7 @@ from pneutune.tune.space import (
     controller_from_params,
     params_from_controller,
     search_space,
+    searches_theta_0,
 )
 
 MODEL = model_from_plant(PlantConfig())
@@ -72,11 +75,41 @@ def test_paper_params_give_the_sec51_gains_on_the_model() -> None:
     assert cfg.kalman.force.Q == pytest.approx(3100.0, rel=1e-12)
     assert cfg.valves == load_controller(
         Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml").valves
-    assert params_from_controller(cfg) == pytest.approx(space.paper_params(), rel=1e-15)
+    searched = {k: v for k, v in params_from_controller(cfg).items() if k in space.names}
+    assert searched == pytest.approx(space.paper_params(), rel=1e-15)
+
+
+def _weak_b_model(half_width: float, model: ModelConfig = MODEL) -> ModelConfig:
+    """``model`` with a_in's b range set to b ± ``half_width`` (the others unchanged)."""
+    data = model.to_dict()
+    v = data["valves"]["a_in"]
+    v["b_min"], v["b_max"] = v["b"] - half_width, v["b"] + half_width
+    return ModelConfig.model_validate(data)
+
+
+#: The default plant's model with one valve's b as a short closed-loop log leaves it: identify
+#: widens b by at least ±0.12 (PARTIAL_B_ERROR) when no valve is held fully open for 0.5 s.
+WEAK_MODEL = _weak_b_model(0.12)
+
+
+def test_theta_0_is_searched_only_where_a_valve_b_is_weakly_identified() -> None:
+    """θ̂3(0) is the 15th parameter only on a model with a b range wider than WEAK_B_SPAN = 0.2
+    (identify's "weakly identified"); the truth model's ranges (±20 % of b = 0.186, 0.074 wide)
+    give 14 and the controller starts at the model's nominal θ3."""
+    assert WEAK_B_SPAN == 0.2
+    narrow = search_space(MODEL)
+    assert len(narrow.params) == 14 and "adaptation.theta_0.b_v" not in narrow.names
+    cfg = controller_from_params(MODEL, narrow.paper_params())
+    assert cfg.adaptation.theta_0[2] == pytest.approx(MODEL.theta.nominal[2], rel=1e-12)
+    assert cfg.adaptation.theta_max == MODEL.theta.max
+    assert not searches_theta_0(_weak_b_model(0.0999))  # 0.1998 wide
+    assert searches_theta_0(_weak_b_model(0.1001))  # 0.2002 wide
+    wide = search_space(WEAK_MODEL)
+    assert wide.names == (*narrow.names[:12], "adaptation.theta_0.b_v", *narrow.names[12:])
 
 
 def test_space_is_log_scaled_around_the_paper_values() -> None:
-    space = search_space(MODEL)
+    space = search_space(WEAK_MODEL)
     assert len(space.params) == 15
     for p in space.params:
         if p.name == "adaptation.theta_0.b_v":  # from the model's nominal θ3 up (docs/tuning.md)
@@ -90,17 +123,18 @@ def test_space_is_log_scaled_around_the_paper_values() -> None:
 def test_theta_0_of_b_v_moves_the_start_and_keeps_the_true_b_v_in_the_box() -> None:
     """θ̂3(0) searched: θ_0 of b_v is the trial's value, θ_max moves up in proportion, θ_min and
     every other θ stay the model's (Eq. 9 needs the true θ in the box)."""
-    space = search_space(MODEL)
-    b_v0 = MODEL.theta.nominal[2]  # 3500 N s/m on the default plant, box [2800, 4200]
-    assert (MODEL.theta.min[2], MODEL.theta.max[2]) == pytest.approx((2800.0, 4200.0))
+    model = WEAK_MODEL
+    space = search_space(model)
+    b_v0 = model.theta.nominal[2]  # 3500 N s/m on the default plant, box [2800, 4200]
+    assert (model.theta.min[2], model.theta.max[2]) == pytest.approx((2800.0, 4200.0))
     for factor, top in ((1.0, 4200.0), (1.2, 1.2 * 4200.0), (3.0, 3.0 * 4200.0)):
-        cfg = controller_from_params(MODEL, {**space.paper_params(),
+        cfg = controller_from_params(model, {**space.paper_params(),
                                              "adaptation.theta_0.b_v": factor * b_v0})
         a = cfg.adaptation
         assert a.theta_0[2] == pytest.approx(factor * b_v0, rel=1e-12)
         assert a.theta_max[2] == pytest.approx(top, rel=1e-12)
-        assert a.theta_min == MODEL.theta.min
-        assert a.theta_max[:2] + a.theta_max[3:] == MODEL.theta.max[:2] + MODEL.theta.max[3:]
+        assert a.theta_min == model.theta.min
+        assert a.theta_max[:2] + a.theta_max[3:] == model.theta.max[:2] + model.theta.max[3:]
         assert params_from_controller(cfg)["adaptation.theta_0.b_v"] == pytest.approx(
             factor * b_v0, rel=1e-12)
 

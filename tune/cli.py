@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from tqdm import tqdm
 
 from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.constants import WEAK_B_SPAN
 from pneutune.control.contracts.controller import DEAD_ZONE_MODES
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
@@ -23,14 +24,16 @@ from .study import DEFAULT_JOURNAL
 
 DEFAULT_MODEL = "reports/identify/model.yaml"
 
-DESCRIPTION = """\
+DESCRIPTION = f"""\
 Tune the modified DARC (Qian et al. 2014, Secs. 3-5) on an identified model (model.yaml,
 contract 3) with Optuna, in closed-loop simulation, and write DIR/controller.yaml (contract 4)
 and DIR/report.md.
 
-Searched (15 parameters, log scales): the gains k1-k3, h2, h3 and r3, the six adaptation rates
-Γ, the two Kalman filters' Q, and the viscous estimate's start θ̂3(0), from the model's nominal
-b_v up to four times it (the rest of θ's box and start are the model's).
+Searched (14 parameters, log scales): the gains k1-k3, h2, h3 and r3, the six adaptation rates
+Γ and the two Kalman filters' Q. On a model where some valve's b is weakly identified (a b
+range wider than {WEAK_B_SPAN:g}, as from a short closed-loop log) also the viscous estimate's
+start θ̂3(0), from the model's nominal b_v up to four times it. The rest of θ's box and start
+are the model's.
 
 Objective: the four Table-1 scenarios and the disturbance scenario, each simulated on plants
 drawn from the model's uncertainty (the nominal plant, two corners of the box, a Latin

@@ -1,6 +1,7 @@
 """The search space of ``tune`` and the map from a trial's parameters to a controller.yaml.
 
-What is searched (15 parameters, named by their controller.yaml key path; docs/tuning.md):
+What is searched (14 parameters, 15 on a model with a weakly identified valve b; named by their
+controller.yaml key path; docs/tuning.md):
 
 * ``gains.k1``, ``gains.k2``, ``gains.k3`` -- the backstepping gains of Eqs. (13), (17), (26).
 * ``gains.h2``, ``gains.h3`` with ``eps2``/``eps3`` fixed at the paper's 0.05 and 250 (Sec. 5.1).
@@ -21,7 +22,8 @@ What is searched (15 parameters, named by their controller.yaml key path; docs/t
   start, and over a 12 s scenario θ̂3 does not get there by adaptation (docs/tuning.md,
   "θ̂3(0)"). θ_max of b_v moves up in proportion (θ_max θ̂3(0) / θ3 nominal), so that the box
   keeps its room to adapt upwards; θ_min stays the model's, so the true b_v stays inside the
-  box (Eq. 9's requirement).
+  box (Eq. 9's requirement). Searched only where some valve's b is weakly identified
+  (:func:`searches_theta_0`); elsewhere θ̂3(0) is the model's nominal θ3.
 * ``kalman.motion.Q`` and ``kalman.force.Q`` -- the process-noise variances of the two filters
   of Sec. 4. Their R are fixed: a Kalman filter's gains depend only on Q/R (the initial
   covariance is proportional to R too), so searching R as well would be a redundant dimension.
@@ -45,7 +47,7 @@ from typing import Any
 
 import optuna
 
-from pneutune.control.constants import CONTROLLER_SCHEMA, THETA_NAMES
+from pneutune.control.constants import CONTROLLER_SCHEMA, THETA_NAMES, WEAK_B_SPAN
 from pneutune.control.contracts.controller import ControllerConfig, PidConfig
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.yamlio import validate_model
@@ -213,14 +215,37 @@ def search_space(model: ModelConfig, variant: str = "modified_darc") -> SearchSp
     for name, (lo, hi), paper, unit in zip(THETA_NAMES, gamma_range, gamma_paper, _GAMMA_UNITS,
                                            strict=True):
         params.append(ParamSpec(f"adaptation.gamma.{name}", lo, hi, True, unit, paper))
-    b_v0 = _b_v_start(model)
-    params.append(ParamSpec("adaptation.theta_0.b_v", b_v0, THETA_0_B_V_SPAN * b_v0, True,
-                            "N s/m", b_v0))
+    if searches_theta_0(model):
+        b_v0 = _b_v_start(model)
+        params.append(ParamSpec("adaptation.theta_0.b_v", b_v0, THETA_0_B_V_SPAN * b_v0, True,
+                                "N s/m", b_v0))
     params.append(motion_q)
     # Q/R of the force filter over 1e4..1e10 1/s^4: bandwidth ~ (Q/R)^(1/4), 10..316 rad/s.
     params.append(ParamSpec("kalman.force.Q", 1.0e4 * r_f, 1.0e10 * r_f, True, "N^2/s^4",
                             PAPER_Q_OVER_R * r_f))
     return SearchSpace(tuple(params), r_m, r_f)
+
+
+def searches_theta_0(model: ModelConfig) -> bool:
+    """Whether θ̂3(0) is searched on ``model``: some valve's b is weakly identified.
+
+    That is a b range wider than :data:`~pneutune.control.constants.WEAK_B_SPAN`, what identify
+    gives a valve that a closed-loop log never holds fully open (widened to at least ±0.12).
+    There the plant draws reach flows the nominal model does not, and no gains beat the paper's
+    controller without a larger start (fleet plant 1, kind e). On the fleet's identification and
+    commissioning runs (b ranges 0.03-0.19 wide) searching it bought nothing and cost 5 of 24
+    rows their win over the paper's gains (docs/tuning.md, "θ̂3(0)").
+
+    Parameters
+    ----------
+    model : ModelConfig
+        The identified model.
+
+    Returns
+    -------
+    bool
+    """
+    return any(v.b_max - v.b_min > WEAK_B_SPAN for v in model.valves.ordered())
 
 
 def _b_v_start(model: ModelConfig) -> float:
@@ -352,4 +377,5 @@ def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
 
 
 __all__ = ["VARIANTS", "ParamSpec", "SearchSpace", "controller_dict", "controller_from_params",
-           "motion_R", "params_from_controller", "search_space", "variant_of"]
+           "motion_R", "params_from_controller", "search_space", "searches_theta_0",
+           "variant_of"]
