@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from pneutune.control.constants import VALVES
+from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.model import save_model
 from pneutune.control.contracts.plant import PlantConfig
@@ -151,6 +152,9 @@ def write_log(kind: str, plant: PlantConfig, path: Path, seed: int) -> None:
         paper = load_controller(PAPER)
         sc = SEQUENCE if kind == "c" else SCENARIOS["sine-0.5hz"]
         res = simulate_scenario(paper, sc, plant, seed=seed)
+        if kind == "e":  # what deploy --log writes: tune replays this closed loop on the model
+            run.update(scenario=sc.name, controller=str(PAPER),
+                       controller_sha256=sha256_file(PAPER))
         res.recording().save(path, rig=plant.rig_metadata(), run=run)
 
 
@@ -171,6 +175,8 @@ class Row:
     #: per scenario, Metrics.flow_limited of the tuned controller on the true plant (the share of
     #: the window with a valve held fully open for 0.1 s or more)
     held_open: dict[str, float] | None = None
+    #: tune's ``log_check`` (tune/logcheck.py): the log's closed loop replayed on the model
+    log_check: dict[str, Any] | None = None
 
     def flow_limited(self) -> list[str]:
         """Scenarios where the tuned controller holds a valve fully open, 0.1 s or more at a
@@ -287,6 +293,7 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
         return row
     res = json.loads(proc.stdout)
     row.tune = "ok"
+    row.log_check = res.get("log_check")
     narrowed = res.get("narrowed") or []
     tr = res["trials"]
     row.tune_note = (f"{tr['complete']}/{tr['finished']} complete, {row.tune_seconds:.0f} s"

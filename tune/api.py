@@ -45,6 +45,7 @@ from pneutune.control.errors import ConfigError
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
+from .logcheck import check_log
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .report import Comparison, compare, write_report
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
@@ -338,6 +339,10 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     behind = behind_paper(comp, best.number, settings)
     if behind is not None and notes is not None:
         notes(behind)
+    log_check = check_log(model_cfg, tuned, settings.seed, name)
+    for line in log_check.warnings():
+        if notes is not None:
+            notes(line)
     paths = _write(out, name, model_sha, study_name, best, tuned, objective, comp, settings)
     report_info = {
         "model": name, "model_sha256": model_sha, "storage": redact_url(storage),
@@ -346,14 +351,14 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
         "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
-        "behind_paper": behind,
+        "behind_paper": behind, "log_check": log_check.lines(),
     }
     paths["report"] = str(write_report(out, objective, study, best, tuned, paper, comp,
                                        report_info))
     info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
-            "behind_paper": behind}
+            "behind_paper": behind, "log_check": log_check.as_dict()}
     return TuneResult(tuned, study, best, comp, feas, run, paths, info, guard)
 
 

@@ -44,6 +44,12 @@ paper's rig on every scenario". An unstable run prunes its trial. Before writing
 trials are run on plants the study never saw and the first that completes every run is kept
 (the held-out guard; report.md says when it passed over the study's best). docs/tuning.md.
 
+When the model came from a closed-loop log that `deploy --log` wrote, the controller that ran is
+replayed on the model's nominal plant beside the log's measured E_p, and the tuned one with it
+(report.md, "The log's own closed loop"). A warning says when the rig tracked twice as well or
+badly as the model, or when the tuned controller does worse than the logged one there: deploy
+both on the rig and keep the better.
+
 The study lives in a storage (default DIR/study.journal, an Optuna journal file; optuna-dashboard
 opens it). Re-running the same command resumes it: --trials N is the number of finished
 (complete or pruned) trials the study holds in total, so a killed run completes the remainder.

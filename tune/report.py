@@ -372,6 +372,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         *_feasibility(info.get("feasibility") or []),
         *_guard(info.get("guard") or []),
         *([f"**{info['behind_paper']}**", ""] if info.get("behind_paper") else []),
+        *(info.get("log_check") or []),
         "## Table 1 on the nominal plant",
         "",
         "Simulated on the model's nominal plant (draw 0, sensor-noise seed "
