@@ -468,18 +468,8 @@ class CylinderSim:
         return self.k * self.Ts
 
     def f_ext(self, t: float) -> float:
-        """External force opposing positive motion [N] at ``t``.
-
-        Parameters
-        ----------
-        t : float
-            Time [s].
-
-        Returns
-        -------
-        float
-            ``F_ext``.
-        """
+        """``F_ext`` [N] at time ``t`` [s]: the scenario's force steps, opposing positive
+        motion."""
         if not self.disturbance:
             return 0.0
         f = 0.0
