@@ -112,8 +112,7 @@ class LogCheck:
                     f"rig, {lo:.3g}-{hi:.3g} mm on the model), and there the tuned controller "
                     f"does worse than the logged one ({t_mean:.3g} against {m_mean:.3g} mm, "
                     "mean over the replays): the study traded this plant for robustness over "
-                    "the model's ranges. Where a range is a prior (report.md of identify: the "
-                    "stiction, the mass), this rig may not need it: deploy both controllers "
+                    "the model's ranges, which this rig may not need: deploy both controllers "
                     "and keep the better"]
         return []
 
