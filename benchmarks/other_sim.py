@@ -12,6 +12,10 @@ the driver protocol ``pneutune.rig/1`` (``deploy --rig exec:``). For each plant 
 3. ``tune --trials N --seed S`` on the model;
 4. ``deploy`` of the tuned controller.yaml on the driver, every scenario, the same noise seed.
 
+The table's "log check" column is tune's replay of the identified log's closed loop on the
+model (tune/logcheck.py): ``warning`` when the rig and the model disagree, or when the tuned
+controller does worse than the logged one there.
+
 A row passes when every command exits 0 and the tuned controller's E_p is below the paper's
 gains' in every Table-1 scenario. Nothing of pneutune's own simulator is in the loop but the
 closed loops inside ``tune``.
@@ -159,6 +163,7 @@ def run_plant(name: str, args: argparse.Namespace) -> dict[str, Any]:
         return row
     row["objective"] = tuned_json["best"]["objective"]
     row["behind_paper"] = tuned_json.get("behind_paper")
+    row["log_check"] = tuned_json.get("log_check")
     row["stage"] = "deploy tuned"
     code, tuned, err = deploy(work / "tune" / "controller.yaml", plant_yaml, work / "tuned.mcap",
                               args.seed)
@@ -173,10 +178,11 @@ def run_plant(name: str, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]], scenarios: tuple[str, ...]) -> str:
-    """Markdown: per plant, the identified parameters outside their range, the tune, E_p."""
+    """Markdown: per plant, the identified parameters outside their range, the tune, whether
+    tune's replay of the log's closed loop warned (tune/logcheck.py), E_p."""
     head = ("| plant | stage | outside range | largest \\|rel. error\\| | objective | "
-            + " | ".join(scenarios) + " | pass |")
-    out = [head, "|" + "---|" * (6 + len(scenarios))]
+            "log check | " + " | ".join(scenarios) + " | pass |")
+    out = [head, "|" + "---|" * (7 + len(scenarios))]
     for r in rows:
         ident = r.get("identified", {})
         outside = [k for k, v in ident.items() if v["inside"] is False] or ["none"]
@@ -185,8 +191,12 @@ def table(rows: list[dict[str, Any]], scenarios: tuple[str, ...]) -> str:
         eps = [f"{r['tuned'][s]:.2f} / {r['paper'][s]:.2f}" if "tuned" in r
                else (f"- / {r['paper'][s]:.2f}" if "paper" in r else "-") for s in scenarios]
         obj = f"{r['objective']:.3f}" if "objective" in r else "-"
+        lc = r.get("log_check") or {}
+        check = ("warning" if lc.get("warnings") else "skipped" if lc.get("skipped")
+                 else "agrees" if lc else "-")
         stage = r["stage"] if "error" not in r else f"{r['stage']}: {r['error']}"
         out.append(f"| {r['plant']} | {stage} | {', '.join(outside)} | {worst_s} | {obj} | "
+                   f"{check} | "
                    + " | ".join(eps) + f" | {'yes' if r['passed'] else '**no**'} |")
     return "\n".join(out)
 
