@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from other_sim_driver import load_plant_dict  # beside this script (sys.path[0])
 
 from pneutune.control.constants import VALVES
 from pneutune.control.sim.scenarios import GROUPS
@@ -105,13 +106,7 @@ def deploy(controller: Path, plant: Path, log: Path, seed: int) -> tuple[int, di
 
 def truth_errors(model_path: Path, plant: dict[str, Any]) -> dict[str, Any]:
     """Identified value against the driver's truth: relative error and whether in range."""
-    from importlib import util
-
-    spec = util.spec_from_file_location("other_sim_driver", DRIVER)
-    assert spec is not None and spec.loader is not None
-    drv = util.module_from_spec(spec)
-    spec.loader.exec_module(drv)
-    truth = drv.load_plant_dict(plant)
+    truth = load_plant_dict(plant)
     m = yaml.safe_load(model_path.read_text())
     out: dict[str, Any] = {}
 

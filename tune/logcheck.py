@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -235,7 +234,7 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
             out.append((m.E_p_mm if ok else math.nan, m.E_rms_mm if ok else math.nan))
         return tuple(out)
 
-    return LogCheck(os.fspath(name), None, scenario.name, ctrl_name,
+    return LogCheck(name, None, scenario.name, ctrl_name,
                     (measured.E_p_mm, measured.E_rms_mm), replay(logged), replay(tuned))
 
 
