@@ -361,7 +361,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plants", type=int, default=12)
     ap.add_argument("--only", help="comma-separated plant indices (default: all)")
-    ap.add_argument("--kinds", default="a,b,c,d", help=f"log kinds: {KINDS}")
+    kinds_help = "; ".join(f"{k} = {v}" for k, v in KINDS.items()).replace("%", "%%")
+    ap.add_argument("--kinds", default="a,b,c,d",
+                    help=f"comma-separated log kinds (default a,b,c,d): {kinds_help}")
     ap.add_argument("--trials", type=int, default=60, help="tune --trials (default 60)")
     ap.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
     ap.add_argument("--out", default="reports/fleet")
