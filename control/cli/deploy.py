@@ -86,6 +86,8 @@ examples:
   deploy data/controller-paper.yaml --scenario table1 --rig exec:"python -m
          pneutune.control.driver serve --scenario {scenario} --seed {seed}"
   deploy data/controller-paper.yaml --rig exec:"./rig_driver" --duration 2
+  deploy reports/tune/controller.yaml --rig exec:"./rig_driver" --scenario all --home
+         (the piston rests anywhere: each scenario starts with a move to its x_r(0))
   identify reports/deploy/sine-0.5hz.mcap         # close the loop: log -> identify -> tune
 
 scenarios: sine-0.5hz (default), sine-0.75hz, sine-0.5hz-heavy, square-0.5hz,
@@ -192,6 +194,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fail-safe", choices=sorted(FAIL_SAFE_MODES), default="hold",
                         help="valve state on a fault: hold (all closed, default) or exhaust")
     parser.add_argument("--plots", metavar="DIR", help="write PNG figures of each run to DIR")
+    parser.add_argument("--home", action="store_true",
+                        help="before each scenario, move the piston from where it rests to the "
+                             "reference's start under the controller and supervisor (a 3 s "
+                             "quintic, then 1 s holding); without it a piston more than 1 mm "
+                             "away is the fault start_position")
     args = parser.parse_args(argv)
 
     # --- everything is checked before anything runs ----------------------------------------
@@ -250,7 +257,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                realtime=args.realtime, record_truth=command is None,
                                cfg_vec=cfg_vec, fail_safe=fail_safe, duration=args.duration,
                                plant=pcfg,
-                               seed=seed if command is None or "{seed}" in command else None)
+                               seed=seed if command is None or "{seed}" in command else None,
+                               home=args.home)
         finally:
             rig.close()
         path = _log_path(args.log, sc.name, several)
@@ -283,6 +291,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 f"{args.rig}, seed {seed}"))
         for name, timing in timings.items():
             info(_timing_line(name, timing))
+        for name, m in results.items():
+            for e in m["events"]:
+                if e["code"] == "homing":
+                    info(f"{name}: homing: {e['message']}")
         for w in warnings:
             info(f"warning: {w['scenario']}: t={w['t']:.3f} s: {w['code']}: {w['message']}")
         for m in results.values():

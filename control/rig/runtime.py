@@ -20,6 +20,14 @@ controller state starts from :func:`pneutune.control.law.darc.init_state` at x_r
 measured chamber pressures, exactly as in the simulator, so that on the simulated rig with the
 same plant and seed a deploy run reproduces ``simulate --controller`` sample for sample.
 
+Homing (``home=True``, ``deploy --home``): before the scenario, :func:`homing_move` moves the piston
+from wherever it rests to x_r(0) under the same controller and supervisor: a quintic move of
+:data:`HOME_MOVE_S` from the first reading, then :data:`HOME_HOLD_S` holding x_r(0). The
+scenario then starts as above, from a fresh controller state and its own t = 0; the rig's clock
+runs on (``clock_offset``: the supervisor's staleness rule compares the rig's sample times with
+the loop's time shifted by the homing's length). The homing samples are not in the scenario's
+recording; an ``info`` event at t = 0 says where the piston came from and how close it got.
+
 Pacing: without ``realtime`` the loop runs as fast as the rig allows (a simulated rig: about
 40 µs a sample). With ``realtime`` iteration k is due at wall time ``t_0 + k Ts``
 (``time.perf_counter_ns``): the loop sleeps until ``spin_s`` before it, then spins. A late
@@ -55,12 +63,17 @@ from pneutune.control.sim.closed_loop import (
     compute_metrics,
     scenario_plant,
 )
-from pneutune.control.sim.scenarios import Scenario
+from pneutune.control.sim.scenarios import Scenario, move_and_hold
 
 #: Status of a run that a supervisor fault stopped (Metrics.status).
 STATUS_FAULT = "fault"
 #: Largest distance between the first position reading and x_r(0) [m].
 START_TOLERANCE = 1.0e-3
+#: Homing: the quintic move from the resting position to x_r(0) [s] (a full 50 mm stroke at a
+#: peak speed of 31 mm/s, below the Table-1 sines' 55 mm/s).
+HOME_MOVE_S = 3.0
+#: Homing: time holding x_r(0) after the move, for the pressures to settle [s].
+HOME_HOLD_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -194,7 +207,9 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
              record_truth: bool = False,
              fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
              start_tolerance: float = START_TOLERANCE, spin_s: float = 5.0e-4,
-             on_sample: Callable[[int], None] | None = None) -> LoopResult:
+             on_sample: Callable[[int], None] | None = None,
+             reference_from: Callable[[float], np.ndarray] | None = None,
+             clock_offset: float = 0.0) -> LoopResult:
     """Run the controller against a rig for ``len(reference)`` samples (module docstring).
 
     Parameters
@@ -220,6 +235,12 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
         Realtime: busy-wait this long before each deadline instead of sleeping [s].
     on_sample : callable, optional
         Called with k after each sample (progress display).
+    reference_from : callable, optional
+        ``x0 -> (N, 3)``: build the reference from the first position reading (homing), in
+        place of ``reference``, which gives its length; no start check then.
+    clock_offset : float
+        Rig time of this loop's first sample [s] (after a homing move): ``sample_times()`` are
+        shifted by it before the supervisor compares them with the loop's time.
 
     Returns
     -------
@@ -236,7 +257,8 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             raise TypeError(f"record_truth needs a SimulatedRig (one with truth()), got "
                             f"{type(rig).__name__}")
         truth_fn = rig.truth
-    ref = np.ascontiguousarray(reference, dtype=np.float64)
+    ref = (np.array(reference, dtype=np.float64) if reference_from is not None
+           else np.ascontiguousarray(reference, dtype=np.float64))
     n = ref.shape[0]
     Ts = float(rig.Ts)
     cfg = np.ascontiguousarray(cfg_vec, dtype=np.float64)
@@ -311,13 +333,20 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             fault = Event(t, "error", "rig_io", f"reading the rig failed at t={t:.4f} s: {exc}")
             n_done = stop(k, t, fault, None)
             break
+        if stamps is not None and clock_offset:
+            stamps = np.asarray(stamps, dtype=np.float64) - clock_offset
         if supervisor is not None:
             fault = supervisor.check_sensors(t, s, stamps)
-        if fault is None and k == 0 and not abs(float(s[0]) - ref[0, 0]) <= start_tolerance:
+        if fault is None and k == 0 and reference_from is not None:
+            ref[:] = reference_from(float(s[0]))
+            if rec.reference_ is not None:
+                rec.reference_[:] = ref
+        elif fault is None and k == 0 and not abs(float(s[0]) - ref[0, 0]) <= start_tolerance:
             fault = Event(t, "error", "start_position",
                           f"the piston is at x = {float(s[0]) * 1e3:.3f} mm, not at the start of "
                           f"the reference x_r(0) = {ref[0, 0] * 1e3:.3f} mm (tolerance "
-                          f"{start_tolerance * 1e3:g} mm): move it there first")
+                          f"{start_tolerance * 1e3:g} mm): move it there first (deploy --home "
+                          f"does, under the controller)")
         if fault is not None:
             n_done = stop(k, t, fault, s)
             break
@@ -378,6 +407,54 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     return LoopResult(rec, n_done, fault, events, timing, cs)
 
 
+def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float, supervisor: Supervisor | None = None,
+         *, realtime: bool = False, record_truth: bool = False,
+         fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
+         move_s: float = HOME_MOVE_S, hold_s: float = HOME_HOLD_S,
+         on_sample: Callable[[int], None] | None = None) -> LoopResult:
+    """Move the piston from where it rests to ``target`` under the controller (homing).
+
+    The reference is :func:`~pneutune.control.sim.scenarios.move_and_hold` from the first
+    position reading to ``target`` in ``move_s``, then ``hold_s`` at ``target``; the controller
+    state starts there as in any run (:func:`run_loop`), under the same supervisor.
+
+    Parameters
+    ----------
+    rig : Rig
+    cfg_vec : (CFG_SIZE,) float64
+        The packed controller config.
+    target : float
+        Where the move ends: the scenario's x_r(0) [m].
+    supervisor : Supervisor, optional
+        As :func:`run_loop` (reset here).
+    realtime, record_truth, fail_safe, on_sample
+        As :func:`run_loop`.
+    move_s, hold_s : float
+        Durations of the move and the hold [s].
+
+    Returns
+    -------
+    LoopResult
+        Its recording holds the homing samples; ``fault`` is set if the supervisor stopped it.
+    """
+    Ts = float(rig.Ts)
+    t = np.arange(max(1, round((move_s + hold_s) / Ts))) * Ts
+    placeholder = np.zeros((t.size, 3))
+    placeholder[:, 0] = target
+    return run_loop(rig, cfg_vec, placeholder, supervisor, realtime=realtime,
+                    record_truth=record_truth, fail_safe=fail_safe, on_sample=on_sample,
+                    reference_from=lambda x0: move_and_hold(t, x0, target, move_s))
+
+
+def _homing_event(homing: LoopResult, target: float) -> Event:
+    """The scenario log's ``info`` event on a completed homing move."""
+    x = homing.recording.sensors_[:, 0]
+    return Event(0.0, "info", "homing",
+                 f"moved from x = {x[0] * 1e3:.3f} mm to x_r(0) = {target * 1e3:.3f} mm in "
+                 f"{homing.n_done * homing.recording.Ts:.2f} s under the controller; "
+                 f"|x - x_r(0)| = {abs(x[-1] - target) * 1e3:.3f} mm at its end")
+
+
 # ---------------------------------------------------------------------------------------------
 # Scenarios
 # ---------------------------------------------------------------------------------------------
@@ -403,6 +480,11 @@ class DeployResult:
         The simulated plant (with the scenario's changes), when the rig is simulated.
     seed : int or None
         The simulated rig's noise seed.
+    run_meta : dict
+        The log's ``run`` metadata.
+    homing : LoopResult or None
+        The homing move before the scenario (``home=True``); when it faulted, :attr:`loop` is
+        that move and the scenario did not run.
     """
 
     scenario: Scenario
@@ -413,6 +495,7 @@ class DeployResult:
     plant: PlantConfig | None = None
     seed: int | None = None
     run_meta: dict[str, str] = field(default_factory=dict)
+    homing: LoopResult | None = None
 
     @property
     def fault(self) -> Event | None:
@@ -454,7 +537,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
                  fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
                  duration: float | None = None, plant: PlantConfig | None = None,
                  seed: int | None = None,
-                 on_sample: Callable[[int], None] | None = None) -> DeployResult:
+                 on_sample: Callable[[int], None] | None = None,
+                 home: bool = False) -> DeployResult:
     """Deploy ``controller`` on ``rig`` for one scenario and compute the metrics.
 
     Parameters
@@ -479,6 +563,9 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         The simulated plant and seed, kept in the result (logs, plots).
     on_sample : callable, optional
         Progress callback.
+    home : bool
+        First move the piston to x_r(0) under the controller (:func:`homing_move`, module
+        docstring).
 
     Returns
     -------
@@ -491,8 +578,23 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     sup = supervisor if supervisor is not None else Supervisor(
         SupervisorSettings.from_controller(controller))
     cfg = pack(controller) if cfg_vec is None else cfg_vec
-    loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
-                    fail_safe=fail_safe, on_sample=on_sample)
+    homing: LoopResult | None = None
+    segment = (scenario.name, "scenario", {"description": scenario.description})
+    if home:
+        homing = homing_move(rig, cfg, float(ref[0, 0]), sup, realtime=realtime,
+                             record_truth=record_truth, fail_safe=fail_safe)
+    if homing is not None and homing.fault is not None:  # the scenario does not run
+        loop = homing
+        ref = homing.recording.reference_
+        segment = ("homing", "homing", {"description": f"homing move before {scenario.name}"})
+    else:
+        offset = homing.n_done * float(rig_meta["Ts"]) if homing is not None else 0.0
+        loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
+                        fail_safe=fail_safe, on_sample=on_sample, clock_offset=offset)
+        if homing is not None:
+            event = _homing_event(homing, float(ref[0, 0]))
+            loop.events.insert(0, event)
+            loop.recording.events_.insert(0, (event.t, event.level, event.code, event.message))
     rec = loop.recording
     a = controller.adaptation
     status = STATUS_FAULT if loop.fault is not None else "ok"
@@ -500,16 +602,18 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
                               np.asarray(a.theta_min), np.asarray(a.theta_max),
                               float(rig_meta["x_min"]), float(rig_meta["x_max"]), status,
                               duty_top=np.asarray(controller.top_duties))
-    rec.segments_.insert(0, (0.0, scenario.name, "scenario",
-                             {"description": scenario.description,
-                              "duration": float(ref.shape[0] * rec.Ts)}))
+    rec.segments_.insert(0, (0.0, segment[0], segment[1],
+                             {**segment[2], "duration": float(ref.shape[0] * rec.Ts)}))
     run_meta = {"scenario": scenario.name, "variant": controller.variant,
                 "status": status, "realtime": str(bool(realtime)).lower()}
+    if homing is not None:
+        run_meta["homing"] = "fault" if homing.fault is not None else "done"
     if seed is not None:
         run_meta["seed"] = str(seed)
     if loop.fault is not None:
         run_meta["fault"] = loop.fault.code
-    return DeployResult(scenario, controller, loop, metrics, rig_meta, plant, seed, run_meta)
+    return DeployResult(scenario, controller, loop, metrics, rig_meta, plant, seed, run_meta,
+                        homing)
 
 
 def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
@@ -548,5 +652,6 @@ def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
     return rig, pcfg, seed_used
 
 
-__all__ = ["START_TOLERANCE", "STATUS_FAULT", "DeployResult", "LoopResult", "TimingStats",
-           "run_loop", "run_scenario", "scenario_reference", "sim_rig_for"]
+__all__ = ["HOME_HOLD_S", "HOME_MOVE_S", "START_TOLERANCE", "STATUS_FAULT", "DeployResult",
+           "LoopResult", "TimingStats", "homing_move", "run_loop", "run_scenario",
+           "scenario_reference", "sim_rig_for"]

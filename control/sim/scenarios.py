@@ -51,6 +51,23 @@ def smooth_square(t: np.ndarray, center: float, amplitude: float, freq: float,
     return np.column_stack([x, 2.0 * amplitude * sign * ds, 2.0 * amplitude * sign * dds])
 
 
+def move_and_hold(t: np.ndarray, x_from: float, x_to: float, move_s: float) -> np.ndarray:
+    """A quintic move from ``x_from`` to ``x_to`` in ``move_s`` seconds, then a hold, (N, 3).
+
+    The edge of :func:`smooth_square` (peak speed 1.875·|Δx|/``move_s``), starting at t = 0;
+    deploy's homing move (``deploy --home``, :func:`pneutune.control.rig.runtime.home`).
+    """
+    if not move_s > 0.0:
+        raise ExperimentError(f"the move must last > 0 s, got {move_s}")
+    z = np.clip(np.asarray(t, dtype=np.float64) / move_s, 0.0, 1.0)
+    moving = z < 1.0
+    dx = x_to - x_from
+    s = z**3 * (10.0 - 15.0 * z + 6.0 * z * z)
+    ds = np.where(moving, 30.0 * z**2 * (1.0 - z) ** 2 / move_s, 0.0)
+    dds = np.where(moving, 60.0 * z * (1.0 - z) * (1.0 - 2.0 * z) / move_s**2, 0.0)
+    return np.column_stack([np.where(moving, x_from + dx * s, x_to), dx * ds, dx * dds])
+
+
 @dataclass(frozen=True)
 class Scenario:
     """A closed-loop test case.
