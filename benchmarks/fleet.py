@@ -68,7 +68,7 @@ KINDS = {
     "c": "closed loop, paper's gains, Table-1 references, 37 s, 4 ms",
     "d": "commissioning run (second protocol), 4 ms",
     "e": "closed loop, paper's gains, sine-0.5hz, 12 s, 4 ms",
-    "t": "no log: the true plant as the model (model_from_plant, ranges ±20 %)",
+    "t": "no log: the true plant as the model (model_from_plant, ranges ±20 % or --t-margin)",
 }
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 SCORED = (*GROUPS["table1"], "disturbance-0.5hz")
@@ -261,7 +261,7 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     model = work / "identify" / "model.yaml"
     if kind == "t":
         model.parent.mkdir(parents=True, exist_ok=True)
-        save_model(model_from_plant(plant), model)
+        save_model(model_from_plant(plant, rel_margin=args.t_margin), model)
     elif not (args.reuse_identify and model.is_file()):
         log = work / "run.mcap"
         if not log.is_file():
@@ -282,7 +282,8 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
         shutil.rmtree(out)
     t_tune = time.perf_counter()
     proc = subprocess.run([_exe("tune"), "--model", str(model), "--trials", str(args.trials),
-                           "--out", str(out), "--seed", "1", "--json"],
+                           "--out", str(out), "--seed", str(args.tune_seed),
+                           "--draws", str(args.draws), "--json"],
                           capture_output=True, text=True)
     row.tune_seconds = time.perf_counter() - t_tune
     if proc.returncode != 0:
@@ -366,6 +367,13 @@ def main() -> int:
                     help=f"comma-separated log kinds (default a,b,c,d): {kinds_help}")
     ap.add_argument("--trials", type=int, default=60, help="tune --trials (default 60)")
     ap.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
+    ap.add_argument("--tune-seed", type=int, default=1, help="tune --seed (default 1)")
+    ap.add_argument("--t-margin", type=float, default=0.2,
+                    help="kind t: every range of the model is the true value ± this fraction "
+                    "(default 0.2; 0.01 with --draws 8: the true plant under 8 noise seeds)")
+    ap.add_argument("--draws", type=int, default=8,
+                    help="tune --draws (default 8, tune's; 1 tunes on the model's nominal plant "
+                    "alone: with --kinds t, the true plant itself)")
     ap.add_argument("--out", default="reports/fleet")
     ap.add_argument("--resume", action="store_true", help="keep existing tune studies")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
@@ -418,8 +426,8 @@ def main() -> int:
                              f"({r.seconds:.0f} s)\n")
             # after every row, so that an interrupted fleet keeps what it measured
             summary = (summarise(rows) + f"; {(time.perf_counter() - t0) / 60:.1f} min; tune "
-                       f"--trials {args.trials}; kinds: "
-                       + "; ".join(f"{k} = {KINDS[k]}" for k in kinds))
+                       f"--trials {args.trials} --seed {args.tune_seed} --draws {args.draws}; "
+                       "kinds: " + "; ".join(f"{k} = {KINDS[k]}" for k in kinds))
             text = table(rows)
             data = [r.__dict__ | {"passed": r.passed, "on_target": r.on_target} for r in rows]
             _write_atomic(out / "fleet.md", text + "\n\n" + summary + "\n")
