@@ -15,6 +15,8 @@ import yaml
 
 from pneutune.control.cli.common import run_cli
 from pneutune.control.cli.deploy import main
+from pneutune.control.errors import ExperimentError
+from pneutune.control.sim.scenarios import resolve_scenarios
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
@@ -168,6 +170,7 @@ def test_plant_timing_mismatch(tmp_path, capsys):
 
 @pytest.mark.parametrize(("argv", "word"), [
     (["--scenario", "sine-9hz"], "unknown scenario"),
+    (["--scenario", "sine-0.5hz,sine-9hz"], "unknown scenario 'sine-9hz'"),
     (["--rig", "hardware"], "unknown rig"),
     (["--rig", "sim:"], "empty"),
     (["--duration", "-1"], "--duration"),
@@ -180,3 +183,11 @@ def test_bad_arguments(capsys, argv, word):
         run_cli(main, [str(PAPER_YAML), *argv])
     assert exc.value.code == 2
     assert word in _error_line(capsys.readouterr().err)
+
+
+def test_scenario_lists_resolve_in_order_each_once() -> None:
+    """``--scenario`` of deploy and simulate takes a comma-separated list (names and groups)."""
+    names = [sc.name for sc in resolve_scenarios("square-0.5hz, sine-0.5hz,table1")]
+    assert names == ["square-0.5hz", "sine-0.5hz", "sine-0.75hz", "sine-0.5hz-heavy"]
+    with pytest.raises(ExperimentError, match="unknown scenario 'sine-9hz'"):
+        resolve_scenarios("sine-0.5hz,sine-9hz")

@@ -141,3 +141,4 @@ def test_deploy_home_on_another_simulator_over_the_pipe(tmp_path):
     assert log.run["homing"] == "done"
     x = log["/rig/sensors"]["x"].to_numpy()
     assert abs(x[0] - 0.006) <= START_TOLERANCE
+

@@ -91,7 +91,8 @@ examples:
   identify reports/deploy/sine-0.5hz.mcap         # close the loop: log -> identify -> tune
 
 scenarios: sine-0.5hz (default), sine-0.75hz, sine-0.5hz-heavy, square-0.5hz,
-disturbance-0.5hz; table1 = the first four; all = all five. Several scenarios write
+disturbance-0.5hz; table1 = the first four; all = all five; or a list such as
+square-0.5hz,disturbance-0.5hz. Several scenarios write
 F-<scenario>.mcap for --log F.mcap, or reports/deploy/<scenario>.mcap by default; a fault
 stops the remaining scenarios.
 """
@@ -179,7 +180,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="sim[:P.yaml] (default sim), pipe-sim[:P.yaml] or "
                              "exec:\"CMD ARGS\" (below)")
     parser.add_argument("--scenario", default="sine-0.5hz", metavar="S",
-                        help="scenario name, table1 or all (default sine-0.5hz)")
+                        help="scenario name, table1, all, or a comma-separated list of them "
+                             "(default sine-0.5hz)")
     parser.add_argument("--realtime", action="store_true",
                         help="pace the loop to wall time; report overruns and jitter")
     parser.add_argument("--log", metavar="F.mcap",

@@ -148,7 +148,8 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
 
     controller = load_controller(args.controller)
     if args.scenario is None:
-        raise ExperimentError("--controller needs --scenario S (a name, table1 or all)")
+        raise ExperimentError("--controller needs --scenario S (a name, table1, all or a "
+                              "comma-separated list)")
     scenarios = resolve_scenarios(args.scenario)
     cfg_vec = pack(controller)
     results = {}
@@ -190,7 +191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     mode.add_argument("--experiment", choices=["identification", "commissioning"],
                       help="excitation protocol to run (see above)")
     mode.add_argument("--controller", metavar="C.yaml", help="controller.yaml for a closed loop")
-    parser.add_argument("--scenario", metavar="S", help="scenario name, table1 or all")
+    parser.add_argument("--scenario", metavar="S",
+                        help="scenario name, table1, all, or a comma-separated list of them")
     parser.add_argument("--out", metavar="F.mcap", help="the log to write")
     parser.add_argument("--plant", metavar="P.yaml", help="plant.yaml (default: the paper's rig)")
     parser.add_argument("--seed", type=int, metavar="N",

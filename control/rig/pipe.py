@@ -714,8 +714,8 @@ def serve_main(args: argparse.Namespace) -> int:
         if args.scenario is not None:
             found = resolve_scenarios(args.scenario)
             if len(found) != 1:
-                raise ExperimentError(f"--scenario takes one scenario name, got the group "
-                                      f"{args.scenario!r}")
+                raise ExperimentError(f"--scenario takes one scenario name, got "
+                                      f"{args.scenario!r} ({len(found)} scenarios)")
             sc = found[0]
             plant_cfg = scenario_plant(plant_cfg, sc)
             x0 = float(sc.reference_array(plant_cfg.rig.Ts,

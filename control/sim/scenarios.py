@@ -136,16 +136,23 @@ GROUPS: dict[str, tuple[str, ...]] = {
 
 
 def resolve_scenarios(name: str) -> list[Scenario]:
-    """Scenarios for a ``--scenario`` value: one name, ``table1`` or ``all``.
+    """Scenarios for a ``--scenario`` value: a name, ``table1``, ``all``, or a comma-separated
+    list of these (in the order given, each scenario once).
 
     Raises
     ------
     ExperimentError
         Unknown name (the message lists the known ones).
     """
-    if name in GROUPS:
-        return [SCENARIOS[n] for n in GROUPS[name]]
-    if name in SCENARIOS:
-        return [SCENARIOS[name]]
+    out: list[Scenario] = []
     known = ", ".join([*SCENARIOS, *GROUPS])
-    raise ExperimentError(f"unknown scenario {name!r}; expected one of: {known}")
+    for part in (p.strip() for p in name.split(",")):
+        if part in GROUPS:
+            found = [SCENARIOS[n] for n in GROUPS[part]]
+        elif part in SCENARIOS:
+            found = [SCENARIOS[part]]
+        else:
+            raise ExperimentError(f"unknown scenario {part!r}; expected one of: {known}, or a "
+                                  f"comma-separated list of them")
+        out += [sc for sc in found if sc not in out]
+    return out
