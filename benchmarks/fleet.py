@@ -68,7 +68,7 @@ KINDS = {
     "c": "closed loop, paper's gains, Table-1 references, 37 s, 4 ms",
     "d": "commissioning run (second protocol), 4 ms",
     "e": "closed loop, paper's gains, sine-0.5hz, 12 s, 4 ms",
-    "t": "no log: the true plant as the model (model_from_plant, ranges ±20 % or --t-margin)",
+    "t": "no log: the true plant as the model (model_from_plant, ranges ±20 %)",
 }
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 SCORED = (*GROUPS["table1"], "disturbance-0.5hz")
@@ -261,7 +261,7 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     model = work / "identify" / "model.yaml"
     if kind == "t":
         model.parent.mkdir(parents=True, exist_ok=True)
-        save_model(model_from_plant(plant, rel_margin=args.t_margin), model)
+        save_model(model_from_plant(plant), model)
     elif not (args.reuse_identify and model.is_file()):
         log = work / "run.mcap"
         if not log.is_file():
@@ -368,9 +368,6 @@ def main() -> int:
     ap.add_argument("--trials", type=int, default=60, help="tune --trials (default 60)")
     ap.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
     ap.add_argument("--tune-seed", type=int, default=1, help="tune --seed (default 1)")
-    ap.add_argument("--t-margin", type=float, default=0.2,
-                    help="kind t: every range of the model is the true value ± this fraction "
-                    "(default 0.2; 0.01 with --draws 8: the true plant under 8 noise seeds)")
     ap.add_argument("--draws", type=int, default=8,
                     help="tune --draws (default 8, tune's; 1 tunes on the model's nominal plant "
                     "alone: with --kinds t, the true plant itself)")
