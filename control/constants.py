@@ -34,6 +34,10 @@ THETA_UNITS: tuple[str, ...] = ("kg", "N", "N s/m", "N", "Pa/s", "Pa/s")
 #: identified: ``identify`` says so, and ``tune`` then searches θ̂3(0) (docs/tuning.md) [-].
 WEAK_B_SPAN: float = 0.2
 
+#: ``deploy --home`` (``run_scenario(home=...)``): move the piston to the scenario's start only
+#: when it rests more than 1 mm away, before every scenario, or never.
+HOME_MODES: tuple[str, ...] = ("auto", "always", "off")
+
 #: Schema identifiers of the file contracts.
 LOG_SCHEMA = "pneutune.log/1"
 PLANT_SCHEMA = "pneutune.plant/1"

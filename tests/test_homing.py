@@ -1,5 +1,7 @@
-"""Homing (``deploy --home``): a piston resting anywhere is moved to the scenario's x_r(0)
-under the controller and supervisor before the scenario runs (control/rig/runtime.py).
+"""Homing (``deploy --home auto|always|off``): a piston resting anywhere is moved to the
+scenario's x_r(0) under the controller and supervisor before the scenario runs
+(control/rig/runtime.py). ``auto`` moves only a piston more than 1 mm away, and then a run that
+needs no move is the run without homing, sample for sample.
 
 Figures come from the paper's controller on the paper's rig (data/controller-paper.yaml,
 PlantConfig()): a move from 6 or 40 mm to 23.5 mm ends within 0.15 mm of x_r(0) (measured
@@ -28,6 +30,7 @@ from pneutune.control.rig.runtime import (
     HOME_MOVE_S,
     START_TOLERANCE,
     run_scenario,
+    sim_rig_for,
 )
 from pneutune.control.sim.closed_loop import scenario_plant
 from pneutune.control.sim.scenarios import SCENARIOS, move_and_hold
@@ -68,7 +71,7 @@ def test_move_and_hold_is_a_quintic_then_a_hold() -> None:
 @pytest.mark.parametrize("x0", [0.006, 0.040])
 def test_home_moves_a_resting_piston_to_the_start_then_runs_the_scenario(paper, x0):
     rig, plant = _rig(x0)
-    res = run_scenario(paper, SINE, rig, duration=2.0, home=True, plant=plant, seed=1)
+    res = run_scenario(paper, SINE, rig, duration=2.0, plant=plant, seed=1)  # home="auto"
     assert res.fault is None and res.metrics.status == "ok"
     homing = res.homing
     assert homing is not None and homing.fault is None
@@ -87,9 +90,9 @@ def test_home_moves_a_resting_piston_to_the_start_then_runs_the_scenario(paper, 
     assert res.run_meta["homing"] == "done"
 
 
-def test_without_home_a_distant_piston_is_the_fault_start_position(paper):
+def test_home_off_a_distant_piston_is_the_fault_start_position(paper):
     rig, _ = _rig(0.006)
-    res = run_scenario(paper, SINE, rig, duration=1.0)
+    res = run_scenario(paper, SINE, rig, duration=1.0, home="off")
     assert res.fault is not None and res.fault.code == "start_position"
     assert "--home" in res.fault.message
     assert res.homing is None
@@ -101,7 +104,8 @@ def test_the_supervisor_judges_staleness_on_the_rig_clock_after_homing(paper):
     clock offset the rig's sample times would lie 4 s in the loop's future and never age."""
     t_rig = HOME_MOVE_S + HOME_HOLD_S + 1.0
     rig, plant = _rig(0.010, FaultySimRig, faults=[Fault("stale", t_rig, "x")])
-    res = run_scenario(paper, SINE, rig, duration=3.0, home=True, plant=plant, seed=1)
+    res = run_scenario(paper, SINE, rig, duration=3.0, plant=plant, seed=1)
+    assert res.homing is not None and res.homing.fault is None
     assert res.fault is not None and res.fault.code == "sensor_stale"
     k_last = round(1.0 / TS) - 1
     expected = (k_last + math.floor(TIMEOUT / TS + 1e-9) + 1) * TS
@@ -110,7 +114,7 @@ def test_the_supervisor_judges_staleness_on_the_rig_clock_after_homing(paper):
 
 def test_a_fault_during_homing_stops_before_the_scenario(paper, tmp_path):
     rig, plant = _rig(0.010, FaultySimRig, faults=[Fault("nan", 1.0, "p_a")])
-    res = run_scenario(paper, SINE, rig, duration=2.0, home=True, plant=plant, seed=1)
+    res = run_scenario(paper, SINE, rig, duration=2.0, plant=plant, seed=1)
     assert res.fault is not None and res.fault.code == "sensor_nan"
     assert res.fault.t == pytest.approx(1.0, abs=1e-9)
     assert res.loop is res.homing and res.metrics.status == "fault"
@@ -122,18 +126,42 @@ def test_a_fault_during_homing_stops_before_the_scenario(paper, tmp_path):
     assert list(log["/rig/events"]["code"]) == ["sensor_nan"]
 
 
+@pytest.mark.parametrize("home", ["auto", "always"])
+def test_a_piston_at_the_start(paper, home):
+    """``auto`` on a piston resting at x_r(0) reads once and runs the scenario exactly as
+    ``off`` does (same recording to the last bit: the simulated rig draws its noise per
+    reading); ``always`` moves and holds first (the homing's 4 s, then the scenario)."""
+    runs = {}
+    for mode in ("off", home):
+        rig, plant, seed = sim_rig_for(SINE, seed=3)
+        runs[mode] = run_scenario(paper, SINE, rig, duration=1.0, plant=plant, seed=seed,
+                                  home=mode)
+    off, other = runs["off"], runs[home]
+    assert off.fault is None and other.fault is None
+    if home == "auto":
+        assert other.homing is None and other.loop.events == []
+        np.testing.assert_array_equal(other.loop.recording.sensors_, off.loop.recording.sensors_)
+        np.testing.assert_array_equal(other.loop.recording.duties_, off.loop.recording.duties_)
+    else:
+        assert other.homing is not None and other.run_meta["homing"] == "done"
+        assert other.homing.n_done == round((HOME_MOVE_S + HOME_HOLD_S) / TS)
+        assert other.loop.recording.n == off.loop.recording.n
+
+
 def test_deploy_home_on_another_simulator_over_the_pipe(tmp_path):
-    """The command a user runs: the other simulator's piston rests at 40 mm; without --home
-    deploy exits 3 (start_position), with it the square wave (x_r(0) = 6 mm) runs."""
+    """The command a user runs: the other simulator's piston rests at 40 mm; with --home off
+    deploy exits 3 (start_position, naming --home); by default the square wave (x_r(0) = 6 mm)
+    runs after a homing move."""
     rig = (f"exec:{shlex.quote(sys.executable)} {shlex.quote(str(DRIVER))} "
            "--scenario {scenario} --seed {seed} --x0 0.040")
     deploy = str(Path(sys.executable).with_name("deploy"))
     base = [deploy, str(PAPER_YAML), "--rig", rig, "--scenario", "square-0.5hz",
             "--duration", "2", "--log", str(tmp_path / "sq.mcap")]
-    refused = subprocess.run(base, capture_output=True, text=True, timeout=300)
+    refused = subprocess.run([*base, "--home", "off"], capture_output=True, text=True,
+                             timeout=300)
     assert refused.returncode == 3, refused.stderr
     assert "start_position" in refused.stderr and "--home" in refused.stderr
-    done = subprocess.run([*base, "--home"], capture_output=True, text=True, timeout=300)
+    done = subprocess.run(base, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "square-0.5hz: homing: moved from x = 40.0" in done.stderr
     assert "to x_r(0) = 6.000 mm" in done.stderr

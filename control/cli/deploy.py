@@ -18,6 +18,7 @@ from pneutune.control.cli.common import (
     print_json,
     run_cli,
 )
+from pneutune.control.constants import HOME_MODES
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.contracts.plant import PlantConfig, load_plant
@@ -86,8 +87,8 @@ examples:
   deploy data/controller-paper.yaml --scenario table1 --rig exec:"python -m
          pneutune.control.driver serve --scenario {scenario} --seed {seed}"
   deploy data/controller-paper.yaml --rig exec:"./rig_driver" --duration 2
-  deploy reports/tune/controller.yaml --rig exec:"./rig_driver" --scenario all --home
-         (the piston rests anywhere: each scenario starts with a move to its x_r(0))
+  deploy reports/tune/controller.yaml --rig exec:"./rig_driver" --scenario all --home always
+         (every scenario starts after a move to its x_r(0) and 1 s holding there)
   identify reports/deploy/sine-0.5hz.mcap         # close the loop: log -> identify -> tune
 
 scenarios: sine-0.5hz (default), sine-0.75hz, sine-0.5hz-heavy, square-0.5hz,
@@ -196,11 +197,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fail-safe", choices=sorted(FAIL_SAFE_MODES), default="hold",
                         help="valve state on a fault: hold (all closed, default) or exhaust")
     parser.add_argument("--plots", metavar="DIR", help="write PNG figures of each run to DIR")
-    parser.add_argument("--home", action="store_true",
-                        help="before each scenario, move the piston from where it rests to the "
-                             "reference's start under the controller and supervisor (a 3 s "
-                             "quintic, then 1 s holding); without it a piston more than 1 mm "
-                             "away is the fault start_position")
+    parser.add_argument("--home", choices=HOME_MODES, default="auto",
+                        help="move the piston from where it rests to the scenario's start "
+                             "x_r(0) under the controller and supervisor before the scenario "
+                             "(a 3 s quintic, then 1 s holding): auto (default) when it rests "
+                             "more than 1 mm away, always, or off (a distant piston is then "
+                             "the fault start_position)")
     args = parser.parse_args(argv)
 
     # --- everything is checked before anything runs ----------------------------------------

@@ -20,10 +20,15 @@ controller state starts from :func:`pneutune.control.law.darc.init_state` at x_r
 measured chamber pressures, exactly as in the simulator, so that on the simulated rig with the
 same plant and seed a deploy run reproduces ``simulate --controller`` sample for sample.
 
-Homing (``home=True``, ``deploy --home``): before the scenario, :func:`homing_move` moves the piston
-from wherever it rests to x_r(0) under the same controller and supervisor: a quintic move of
-:data:`HOME_MOVE_S` from the first reading, then :data:`HOME_HOLD_S` holding x_r(0). The
-scenario then starts as above, from a fresh controller state and its own t = 0; the rig's clock
+Homing (:func:`run_scenario`'s ``home``, ``deploy --home``): before the scenario,
+:func:`homing_move` moves the piston from where it rests to x_r(0) under the same controller and
+supervisor: a quintic move of :data:`HOME_MOVE_S` from the first reading, then
+:data:`HOME_HOLD_S` holding x_r(0). ``auto`` (the default) does so only when the first reading is
+more than ``start_tolerance`` away, ``always`` before every scenario, ``off`` never (a distant
+piston is then the fault ``start_position``). The first reading is taken once and serves the
+decision and the first sample of whichever loop runs next (a simulated rig draws its noise per
+reading), so a run that needs no homing is the run without it, sample for sample. After a move
+the scenario starts as above, from a fresh controller state and its own t = 0; the rig's clock
 runs on (``clock_offset``: the supervisor's staleness rule compares the rig's sample times with
 the loop's time shifted by the homing's length). The homing samples are not in the scenario's
 recording; an ``info`` event at t = 0 says where the piston came from and how close it got.
@@ -48,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from pneutune.control.constants import HOME_MODES
 from pneutune.control.contracts.controller import ControllerConfig
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.law.darc import MEAS_SIZE, S_THETA, init_state, step_into
@@ -208,7 +214,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
              fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
              start_tolerance: float = START_TOLERANCE, spin_s: float = 5.0e-4,
              on_sample: Callable[[int], None] | None = None,
-             reference_from: Callable[[float], np.ndarray] | None = None,
+             first: tuple[np.ndarray, np.ndarray | None] | None = None,
              clock_offset: float = 0.0) -> LoopResult:
     """Run the controller against a rig for ``len(reference)`` samples (module docstring).
 
@@ -235,9 +241,9 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
         Realtime: busy-wait this long before each deadline instead of sleeping [s].
     on_sample : callable, optional
         Called with k after each sample (progress display).
-    reference_from : callable, optional
-        ``x0 -> (N, 3)``: build the reference from the first position reading (homing), in
-        place of ``reference``, which gives its length; no start check then.
+    first : (sensors, sample_times), optional
+        The first sample's ``read()`` and ``sample_times()``, already taken (by
+        :func:`run_scenario`, to decide on homing): used for k = 0 instead of reading again.
     clock_offset : float
         Rig time of this loop's first sample [s] (after a homing move): ``sample_times()`` are
         shifted by it before the supervisor compares them with the loop's time.
@@ -257,8 +263,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             raise TypeError(f"record_truth needs a SimulatedRig (one with truth()), got "
                             f"{type(rig).__name__}")
         truth_fn = rig.truth
-    ref = (np.array(reference, dtype=np.float64) if reference_from is not None
-           else np.ascontiguousarray(reference, dtype=np.float64))
+    ref = np.ascontiguousarray(reference, dtype=np.float64)
     n = ref.shape[0]
     Ts = float(rig.Ts)
     cfg = np.ascontiguousarray(cfg_vec, dtype=np.float64)
@@ -327,8 +332,11 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
         else:
             start = clock()
         try:
-            s = rig.read()
-            stamps = sample_times()
+            if k == 0 and first is not None:
+                s, stamps = first
+            else:
+                s = rig.read()
+                stamps = sample_times()
         except RigIOError as exc:
             fault = Event(t, "error", "rig_io", f"reading the rig failed at t={t:.4f} s: {exc}")
             n_done = stop(k, t, fault, None)
@@ -337,16 +345,12 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             stamps = np.asarray(stamps, dtype=np.float64) - clock_offset
         if supervisor is not None:
             fault = supervisor.check_sensors(t, s, stamps)
-        if fault is None and k == 0 and reference_from is not None:
-            ref[:] = reference_from(float(s[0]))
-            if rec.reference_ is not None:
-                rec.reference_[:] = ref
-        elif fault is None and k == 0 and not abs(float(s[0]) - ref[0, 0]) <= start_tolerance:
+        if fault is None and k == 0 and not abs(float(s[0]) - ref[0, 0]) <= start_tolerance:
             fault = Event(t, "error", "start_position",
                           f"the piston is at x = {float(s[0]) * 1e3:.3f} mm, not at the start of "
                           f"the reference x_r(0) = {ref[0, 0] * 1e3:.3f} mm (tolerance "
                           f"{start_tolerance * 1e3:g} mm): move it there first (deploy --home "
-                          f"does, under the controller)")
+                          f"auto does, under the controller)")
         if fault is not None:
             n_done = stop(k, t, fault, s)
             break
@@ -407,11 +411,13 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     return LoopResult(rec, n_done, fault, events, timing, cs)
 
 
-def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float, supervisor: Supervisor | None = None,
-         *, realtime: bool = False, record_truth: bool = False,
-         fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
-         move_s: float = HOME_MOVE_S, hold_s: float = HOME_HOLD_S,
-         on_sample: Callable[[int], None] | None = None) -> LoopResult:
+def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
+                supervisor: Supervisor | None = None, *, realtime: bool = False,
+                record_truth: bool = False,
+                fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
+                move_s: float = HOME_MOVE_S, hold_s: float = HOME_HOLD_S,
+                first: tuple[np.ndarray, np.ndarray | None] | None = None,
+                on_sample: Callable[[int], None] | None = None) -> LoopResult:
     """Move the piston from where it rests to ``target`` under the controller (homing).
 
     The reference is :func:`~pneutune.control.sim.scenarios.move_and_hold` from the first
@@ -431,19 +437,23 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float, supervisor: Superv
         As :func:`run_loop`.
     move_s, hold_s : float
         Durations of the move and the hold [s].
+    first : (sensors, sample_times), optional
+        The first sample's reading, already taken (:func:`run_loop`); default: read it here.
 
     Returns
     -------
     LoopResult
         Its recording holds the homing samples; ``fault`` is set if the supervisor stopped it.
     """
-    Ts = float(rig.Ts)
-    t = np.arange(max(1, round((move_s + hold_s) / Ts))) * Ts
-    placeholder = np.zeros((t.size, 3))
-    placeholder[:, 0] = target
-    return run_loop(rig, cfg_vec, placeholder, supervisor, realtime=realtime,
-                    record_truth=record_truth, fail_safe=fail_safe, on_sample=on_sample,
-                    reference_from=lambda x0: move_and_hold(t, x0, target, move_s))
+    if first is None:
+        first = (rig.read(), rig.sample_times())
+    t = np.arange(max(1, round((move_s + hold_s) / float(rig.Ts)))) * float(rig.Ts)
+    x0 = float(first[0][0])
+    # a NaN first position is the supervisor's sensor_nan at k = 0: start the move anywhere
+    ref = move_and_hold(t, x0 if math.isfinite(x0) else target, target, move_s)
+    return run_loop(rig, cfg_vec, ref, supervisor, realtime=realtime, record_truth=record_truth,
+                    fail_safe=fail_safe, on_sample=on_sample, first=first,
+                    start_tolerance=math.inf)
 
 
 def _homing_event(homing: LoopResult, target: float) -> Event:
@@ -538,7 +548,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
                  duration: float | None = None, plant: PlantConfig | None = None,
                  seed: int | None = None,
                  on_sample: Callable[[int], None] | None = None,
-                 home: bool = False) -> DeployResult:
+                 home: str = "auto",
+                 start_tolerance: float = START_TOLERANCE) -> DeployResult:
     """Deploy ``controller`` on ``rig`` for one scenario and compute the metrics.
 
     Parameters
@@ -563,9 +574,11 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         The simulated plant and seed, kept in the result (logs, plots).
     on_sample : callable, optional
         Progress callback.
-    home : bool
-        First move the piston to x_r(0) under the controller (:func:`homing_move`, module
-        docstring).
+    home : {"auto", "always", "off"}
+        Move the piston to x_r(0) under the controller first (:func:`homing_move`, module
+        docstring): when it rests more than ``start_tolerance`` away, always, or never.
+    start_tolerance : float
+        Largest |x(0) - x_r(0)| of the scenario's start [m].
 
     Returns
     -------
@@ -578,11 +591,23 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     sup = supervisor if supervisor is not None else Supervisor(
         SupervisorSettings.from_controller(controller))
     cfg = pack(controller) if cfg_vec is None else cfg_vec
+    if home not in HOME_MODES:
+        raise ValueError(f"home must be one of {HOME_MODES}, got {home!r}")
     homing: LoopResult | None = None
     segment = (scenario.name, "scenario", {"description": scenario.description})
-    if home:
-        homing = homing_move(rig, cfg, float(ref[0, 0]), sup, realtime=realtime,
-                             record_truth=record_truth, fail_safe=fail_safe)
+    first: tuple[np.ndarray, np.ndarray | None] | None = None
+    if home != "off":
+        _warm_up(cfg, ref)  # before the first reading, which then serves its sample at once
+        try:
+            first = (rig.read(), rig.sample_times())
+        except RigIOError:
+            first = None  # the loop reads again and records the rig_io fault
+        # a reading the supervisor refuses (NaN, out of range) is its fault in the scenario
+        x0 = float(first[0][0]) if first is not None else math.nan
+        if math.isfinite(x0) and (home == "always" or abs(x0 - ref[0, 0]) > start_tolerance):
+            homing = homing_move(rig, cfg, float(ref[0, 0]), sup, realtime=realtime,
+                                 record_truth=record_truth, fail_safe=fail_safe, first=first)
+            first = None
     if homing is not None and homing.fault is not None:  # the scenario does not run
         loop = homing
         ref = homing.recording.reference_
@@ -590,7 +615,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     else:
         offset = homing.n_done * float(rig_meta["Ts"]) if homing is not None else 0.0
         loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
-                        fail_safe=fail_safe, on_sample=on_sample, clock_offset=offset)
+                        fail_safe=fail_safe, on_sample=on_sample, first=first,
+                        clock_offset=offset, start_tolerance=start_tolerance)
         if homing is not None:
             event = _homing_event(homing, float(ref[0, 0]))
             loop.events.insert(0, event)
@@ -652,6 +678,6 @@ def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
     return rig, pcfg, seed_used
 
 
-__all__ = ["HOME_HOLD_S", "HOME_MOVE_S", "START_TOLERANCE", "STATUS_FAULT", "DeployResult",
-           "LoopResult", "TimingStats", "homing_move", "run_loop", "run_scenario",
+__all__ = ["HOME_HOLD_S", "HOME_MODES", "HOME_MOVE_S", "START_TOLERANCE", "STATUS_FAULT",
+           "DeployResult", "LoopResult", "TimingStats", "homing_move", "run_loop", "run_scenario",
            "scenario_reference", "sim_rig_for"]
