@@ -11,7 +11,6 @@ tolerance.
 
 from __future__ import annotations
 
-import math
 import shlex
 import subprocess
 import sys
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rig_helpers import PAPER_YAML, ROOT, SINE, TS, first_stale_time
 
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
@@ -33,17 +33,11 @@ from pneutune.control.rig.runtime import (
     sim_rig_for,
 )
 from pneutune.control.sim.closed_loop import scenario_plant
-from pneutune.control.sim.scenarios import SCENARIOS, move_and_hold
+from pneutune.control.sim.scenarios import move_and_hold
 
-ROOT = Path(__file__).resolve().parents[1]
-PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
 DRIVER = ROOT / "benchmarks" / "other_sim_driver.py"
-SINE = SCENARIOS["sine-0.5hz"]
-TS = 0.004
 #: x_r(0) of the sines on the paper's rig: mid-stroke [m].
 MID = 0.0235
-#: limits.sensor_timeout_s of data/controller-paper.yaml [s].
-TIMEOUT = 0.02
 
 
 @pytest.fixture(scope="module")
@@ -107,9 +101,7 @@ def test_the_supervisor_judges_staleness_on_the_rig_clock_after_homing(paper):
     res = run_scenario(paper, SINE, rig, duration=3.0, plant=plant, seed=1)
     assert res.homing is not None and res.homing.fault is None
     assert res.fault is not None and res.fault.code == "sensor_stale"
-    k_last = round(1.0 / TS) - 1
-    expected = (k_last + math.floor(TIMEOUT / TS + 1e-9) + 1) * TS
-    assert res.fault.t == pytest.approx(expected, abs=1e-9)
+    assert res.fault.t == pytest.approx(first_stale_time(1.0), abs=1e-9)
 
 
 def test_a_fault_during_homing_stops_before_the_scenario(paper, tmp_path):

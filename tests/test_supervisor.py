@@ -4,14 +4,13 @@ warnings; the pure rules on synthetic samples."""
 
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from rig_helpers import PAPER_YAML, SINE, TS, first_stale_time
 
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.logs.reader import read_run_log
@@ -25,13 +24,6 @@ from pneutune.control.rig.supervisor import (
     SupervisorSettings,
 )
 from pneutune.control.sim.scenarios import SCENARIOS
-
-ROOT = Path(__file__).resolve().parents[1]
-PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
-TS = 0.004
-SINE = SCENARIOS["sine-0.5hz"]
-#: limits.sensor_timeout_s of data/controller-paper.yaml [s].
-TIMEOUT = 0.02
 
 
 @pytest.fixture(scope="module")
@@ -54,13 +46,6 @@ def _faulty_run(controller, faults, duration=3.0, fail_safe=FAIL_SAFE_DUTIES, **
     return rig, res
 
 
-def _first_stale_time(t_fault: float) -> float:
-    """A channel that stops at t_fault was last new at t_fault - Ts; the fault comes at the
-    first sample more than the timeout later."""
-    k_last = round(t_fault / TS) - 1
-    return (k_last + math.floor(TIMEOUT / TS + 1e-9) + 1) * TS
-
-
 # (fault, expected code, expected fault time [s])
 CASES = [
     (Fault("nan", 1.0, "x"), "sensor_nan", 1.0),
@@ -70,8 +55,8 @@ CASES = [
     (Fault("value", 1.0, "x", 1.0), "sensor_range", 1.0),             # broken wire: at the rail
     (Fault("value", 1.0, "p_b", -2.5e4), "sensor_range", 1.0),        # 4-20 mA loop open
     (Fault("value", 1.0, "p_s", 2.5e6), "sensor_range", 1.0),         # above full scale
-    (Fault("stale", 1.0, "x"), "sensor_stale", _first_stale_time(1.0)),
-    (Fault("stale", 1.0, "p_a"), "sensor_stale", _first_stale_time(1.0)),
+    (Fault("stale", 1.0, "x"), "sensor_stale", first_stale_time(1.0)),
+    (Fault("stale", 1.0, "p_a"), "sensor_stale", first_stale_time(1.0)),
     (Fault("supply", 1.0, value=2.0e5), "supply_loss", 1.0),
     (Fault("supply", 1.2, value=1.2e5), "supply_loss", 1.2),
 ]
@@ -166,7 +151,7 @@ def test_stale_pressure_without_sample_times(paper):
     f = Fault("stale", 1.0, "p_b", stamp=False)
     rig, res = _faulty_run(paper, [f], report_sample_times=False)
     assert res.fault is not None and res.fault.code == "sensor_stale"
-    assert res.fault.t == pytest.approx(_first_stale_time(1.0), abs=1e-9)
+    assert res.fault.t == pytest.approx(first_stale_time(1.0), abs=1e-9)
     np.testing.assert_array_equal(rig.last_duties, FAIL_SAFE_DUTIES)
 
 
