@@ -11,6 +11,7 @@ tolerance.
 
 from __future__ import annotations
 
+import math
 import shlex
 import subprocess
 import sys
@@ -24,7 +25,7 @@ from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.faults import Fault, FaultySimRig
-from pneutune.control.rig.pipe import DeploySimRig
+from pneutune.control.rig.pipe import DeploySimRig, RigIOError
 from pneutune.control.rig.runtime import (
     HOME_HOLD_S,
     HOME_MOVE_S,
@@ -33,7 +34,7 @@ from pneutune.control.rig.runtime import (
     sim_rig_for,
 )
 from pneutune.control.sim.closed_loop import scenario_plant
-from pneutune.control.sim.scenarios import move_and_hold
+from pneutune.control.sim.scenarios import SCENARIOS, move_and_hold
 
 DRIVER = ROOT / "benchmarks" / "other_sim_driver.py"
 #: x_r(0) of the sines on the paper's rig: mid-stroke [m].
@@ -110,6 +111,7 @@ def test_a_fault_during_homing_stops_before_the_scenario(paper, tmp_path):
     assert res.fault is not None and res.fault.code == "sensor_nan"
     assert res.fault.t == pytest.approx(1.0, abs=1e-9)
     assert res.loop is res.homing and res.metrics.status == "fault"
+    assert math.isnan(res.metrics.E_p_mm) and math.isnan(res.metrics.E_rms_mm)
     assert res.run_meta["homing"] == "fault"
     path = tmp_path / "homing-fault.mcap"
     res.save_log(str(path))
@@ -161,4 +163,58 @@ def test_deploy_home_on_another_simulator_over_the_pipe(tmp_path):
     assert log.run["homing"] == "done"
     x = log["/rig/sensors"]["x"].to_numpy()
     assert abs(x[0] - 0.006) <= START_TOLERANCE
+    # a driver that simulates the timed disturbance on its own clock: deploy says it is early
+    base[base.index("square-0.5hz")] = "disturbance-0.5hz"
+    early = subprocess.run(base, capture_output=True, text=True, timeout=300)
+    assert early.returncode == 0, early.stderr
+    assert "homing_clock" in early.stderr and "4.00 s early" in early.stderr
 
+
+def test_the_scenario_disturbance_starts_with_the_scenario_after_homing(paper):
+    """The simulated rig applies the force steps of disturbance-0.5hz (30 N at 7.6 s, 80 N at
+    9.8 s, off at 11.9 s) on the scenario's clock after the move, not 4 s early: the true
+    external force per sample is the same as in the run without homing."""
+    sc = SCENARIOS["disturbance-0.5hz"]
+    runs = {}
+    for mode in ("off", "always"):
+        rig, plant, seed = sim_rig_for(sc, seed=2)
+        runs[mode] = run_scenario(paper, sc, rig, plant=plant, seed=seed, home=mode,
+                                  record_truth=True)
+    f_off = runs["off"].loop.recording.truth_[:, 3]
+    f_homed = runs["always"].loop.recording.truth_[:, 3]
+    assert runs["always"].homing is not None
+    np.testing.assert_array_equal(f_homed, f_off)
+    assert f_off[round(9.0 / TS)] - f_off[round(7.0 / TS)] == pytest.approx(30.0, abs=1e-9)
+
+
+class _FirstReadFails(DeploySimRig):
+    """A rig whose first read raises (a DAQ timeout) and whose later reads work."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.reads = 0
+
+    def read(self) -> np.ndarray:
+        self.reads += 1
+        if self.reads == 1:
+            raise RigIOError("ADC card: conversion timeout")
+        return super().read()
+
+
+@pytest.mark.parametrize("home", ["auto", "always", "off"])
+def test_a_failed_first_reading_is_the_rig_io_fault_with_its_message(paper, home):
+    rig, _ = _rig(MID, _FirstReadFails)
+    res = run_scenario(paper, SINE, rig, duration=1.0, home=home)
+    assert res.fault is not None and res.fault.code == "rig_io" and res.fault.t == 0.0
+    assert "ADC card: conversion timeout" in res.fault.message
+    assert rig.reads == 1 and res.homing is None
+
+
+def test_warnings_of_the_homing_move_reach_the_scenario_log(paper):
+    """A supply 1.2 bar below the controller's p_s from 0.5 s of rig time on: the supervisor's
+    reidentify_supply warning during the move is in the scenario's events at t = 0."""
+    rig, plant = _rig(0.010, FaultySimRig, faults=[Fault("supply", 0.5, value=4.8e5)])
+    res = run_scenario(paper, SINE, rig, duration=1.0, plant=plant, seed=1)
+    assert res.homing is not None and res.homing.fault is None
+    during = [e for e in res.loop.events if e.message.startswith("during the homing move")]
+    assert [e.code for e in during] == ["reidentify_supply"] and during[0].t == 0.0

@@ -127,3 +127,23 @@ def test_nothing_is_checked_and_the_report_says_why(case: str, logged: tuple[Pat
     lc = check_log(model, paper, seed=1)
     assert lc.skipped is not None and why in lc.skipped, lc.skipped
     assert lc.warnings() == [] and lc.lines()[2].startswith("Not checked: ")
+
+
+def test_a_log_of_a_homing_move_that_faulted_is_not_checked(tmp_path: Path) -> None:
+    """deploy's log when a fault stopped the homing move (p_a NaN at 1 s of a move from 10 mm)
+    holds no scenario: nothing to replay."""
+    from pneutune.control.rig.faults import Fault, FaultySimRig
+    from pneutune.control.rig.runtime import run_scenario
+    from pneutune.control.sim.closed_loop import scenario_plant
+    from pneutune.control.sim.scenarios import SCENARIOS
+
+    sc = SCENARIOS["sine-0.5hz"]
+    rig = FaultySimRig(scenario_plant(PlantConfig(), sc), faults=[Fault("nan", 1.0, "p_a")],
+                       x0=0.010, seed=1)
+    res = run_scenario(load_controller(PAPER), sc, rig)
+    assert res.homing is not None and res.fault is not None
+    log = tmp_path / "homing.mcap"
+    res.save_log(str(log), run={"controller": str(PAPER),
+                                "controller_sha256": sha256_file(PAPER)})
+    lc = check_log(_model(log), load_controller(PAPER), seed=1)
+    assert lc.skipped is not None and "homing move" in lc.skipped, lc.skipped

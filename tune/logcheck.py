@@ -189,6 +189,9 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
     if "/control/state" not in log.topics or "/control/reference" not in log.topics:
         return LogCheck(name, "it is not a closed-loop run (no /control/state): an "
                         "identification or commissioning run")
+    if log.run.get("homing") == "fault":
+        return LogCheck(name, "it holds only a homing move that a fault stopped before the "
+                        "scenario (run record `homing: fault`)")
     scenario = SCENARIOS.get(log.run.get("scenario", ""))
     if scenario is None:
         return LogCheck(name, f"its run record names no scenario this version knows "

@@ -193,7 +193,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="sensor-noise seed of the simulated rig (default: sim.seed, 1); "
                              "{seed} of an exec: command")
     parser.add_argument("--duration", type=float, metavar="S",
-                        help="run only the first S seconds of each scenario")
+                        help="run only the first S seconds of each scenario (a homing move "
+                             "before it keeps its 4 s)")
     parser.add_argument("--fail-safe", choices=sorted(FAIL_SAFE_MODES), default="hold",
                         help="valve state on a fault: hold (all closed, default) or exhaust")
     parser.add_argument("--plots", metavar="DIR", help="write PNG figures of each run to DIR")
@@ -271,17 +272,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         m["log"] = str(path)
         m["samples"] = res.loop.n_done
         m["events"] = [e.as_dict() for e in res.loop.events]
+        homing_fault = res.homing is not None and res.homing.fault is not None
+        if res.homing is not None:
+            m["homing"] = {"status": "fault" if homing_fault else "done",
+                           "samples": res.homing.n_done,
+                           "timing": res.homing.timing.as_dict()}
         results[sc.name] = m
         timings[sc.name] = res.loop.timing.as_dict()
         rows.append((sc.name, m, sc.paper))
         warnings += [{"scenario": sc.name, **e.as_dict()} for e in res.loop.events
                      if e.level == "warning"]
-        if args.plots and res.loop.n_done > 1:
+        if args.plots and res.loop.n_done > 1 and not homing_fault:
             from pneutune.control.cli.plots import plot_closed_loop
 
             m["plots"] = [str(p) for p in plot_closed_loop(res.closed_loop_result(), args.plots)]
         if res.fault is not None:
-            faults.append({"scenario": sc.name, **res.fault.as_dict()})
+            faults.append({"scenario": sc.name, "phase": "homing" if homing_fault else "scenario",
+                           **res.fault.as_dict()})
             break
 
     not_run = [sc.name for sc in scenarios if sc.name not in results]
@@ -295,6 +302,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 f"{args.rig}, seed {seed}"))
         for name, timing in timings.items():
             info(_timing_line(name, timing))
+            if "homing" in results[name]:
+                info(_timing_line(f"{name} (homing)", results[name]["homing"]["timing"]))
         for name, m in results.items():
             for e in m["events"]:
                 if e["code"] == "homing":
@@ -308,7 +317,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if faults:
         f = faults[0]
         log = results[f["scenario"]]["log"] if f["scenario"] in results else "none written"
-        info(f"error: fault {f['code']} in scenario {f['scenario']} at t={f['t']:.4f} s: "
+        where = ("during the homing move before scenario" if f.get("phase") == "homing"
+                 else "in scenario")
+        info(f"error: fault {f['code']} {where} {f['scenario']} at t={f['t']:.4f} s: "
              f"{f['message']} (log: {log})")
         return EXIT_FAULT
     return 0

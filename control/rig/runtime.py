@@ -30,8 +30,11 @@ decision and the first sample of whichever loop runs next (a simulated rig draws
 reading), so a run that needs no homing is the run without it, sample for sample. After a move
 the scenario starts as above, from a fresh controller state and its own t = 0; the rig's clock
 runs on (``clock_offset``: the supervisor's staleness rule compares the rig's sample times with
-the loop's time shifted by the homing's length). The homing samples are not in the scenario's
-recording; an ``info`` event at t = 0 says where the piston came from and how close it got.
+the loop's time shifted by the homing's length; the control law gets the rig's time). A
+simulated rig in process starts the scenario's timed disturbance after the move
+(``shift_scenario_clock``); for a driver that simulates one on its own clock a warning says it
+comes early. The homing samples are not in the scenario's recording: at t = 0 it gets the
+move's warnings and an ``info`` event saying where the piston came from and how close it got.
 
 Pacing: without ``realtime`` the loop runs as fast as the rig allows (a simulated rig: about
 40 µs a sample). With ``realtime`` iteration k is due at wall time ``t_0 + k Ts``
@@ -45,6 +48,7 @@ warning.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping
@@ -214,7 +218,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
              fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
              start_tolerance: float = START_TOLERANCE, spin_s: float = 5.0e-4,
              on_sample: Callable[[int], None] | None = None,
-             first: tuple[np.ndarray, np.ndarray | None] | None = None,
+             first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None = None,
              clock_offset: float = 0.0) -> LoopResult:
     """Run the controller against a rig for ``len(reference)`` samples (module docstring).
 
@@ -241,12 +245,14 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
         Realtime: busy-wait this long before each deadline instead of sleeping [s].
     on_sample : callable, optional
         Called with k after each sample (progress display).
-    first : (sensors, sample_times), optional
+    first : (sensors, sample_times) or RigIOError, optional
         The first sample's ``read()`` and ``sample_times()``, already taken (by
-        :func:`run_scenario`, to decide on homing): used for k = 0 instead of reading again.
+        :func:`run_scenario`, to decide on homing), or the error that reading raised: used for
+        k = 0 instead of reading again (a rig_io fault for an error).
     clock_offset : float
         Rig time of this loop's first sample [s] (after a homing move): ``sample_times()`` are
-        shifted by it before the supervisor compares them with the loop's time.
+        shifted by it before the supervisor compares them with the loop's time, and the control
+        law gets the rig's time (its PWM dithering follows the rig's carrier).
 
     Returns
     -------
@@ -332,6 +338,8 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
         else:
             start = clock()
         try:
+            if k == 0 and isinstance(first, RigIOError):
+                raise first
             if k == 0 and first is not None:
                 s, stamps = first
             else:
@@ -356,7 +364,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             break
         if k == 0:
             cs = init_state(cfg, float(ref[0, 0]), float(s[1]), float(s[2]))
-        meas[0] = t
+        meas[0] = t + clock_offset
         meas[1:5] = s
         meas[5:8] = ref[k]
         t_step = clock()
@@ -399,6 +407,8 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
                                     f"(Ts = {Ts * 1e3:g} ms)"))
         if on_sample is not None:
             on_sample(k)
+    if realtime and fault is None and n_done == n:  # the last period too: a loop that follows
+        _wait_until(origin + n * period_ns, spin_ns)  # starts its own schedule on the tick
     wall = time.perf_counter_ns() - wall0
     if fault is not None:  # the logged form, which also names the fail-safe duties
         fault = next(e for e in events if e.level == "error")
@@ -437,8 +447,9 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
         As :func:`run_loop`.
     move_s, hold_s : float
         Durations of the move and the hold [s].
-    first : (sensors, sample_times), optional
-        The first sample's reading, already taken (:func:`run_loop`); default: read it here.
+    first : (sensors, sample_times) or RigIOError, optional
+        The first sample's reading, already taken (:func:`run_scenario`), or the error it
+        raised; default: read it here.
 
     Returns
     -------
@@ -446,9 +457,12 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
         Its recording holds the homing samples; ``fault`` is set if the supervisor stopped it.
     """
     if first is None:
-        first = (rig.read(), rig.sample_times())
+        try:
+            first = (rig.read(), rig.sample_times())
+        except RigIOError as exc:
+            first = exc
     t = np.arange(max(1, round((move_s + hold_s) / float(rig.Ts)))) * float(rig.Ts)
-    x0 = float(first[0][0])
+    x0 = math.nan if isinstance(first, RigIOError) else float(first[0][0])
     # a NaN first position is the supervisor's sensor_nan at k = 0: start the move anywhere
     ref = move_and_hold(t, x0 if math.isfinite(x0) else target, target, move_s)
     return run_loop(rig, cfg_vec, ref, supervisor, realtime=realtime, record_truth=record_truth,
@@ -456,13 +470,35 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
                     start_tolerance=math.inf)
 
 
-def _homing_event(homing: LoopResult, target: float) -> Event:
-    """The scenario log's ``info`` event on a completed homing move."""
+def _after_homing(rig: Rig, scenario: Scenario, homing: LoopResult | None, offset: float,
+                  target: float) -> list[Event]:
+    """Start the scenario's clock on the rig after a homing move; the events for its log.
+
+    A rig with ``shift_scenario_clock`` (the simulated rigs in process) delays the scenario's
+    timed plant changes by ``offset``; any other rig that simulates them does so on its own
+    clock, which a ``warning`` says. The move's warnings follow, at t = 0, then the ``info``
+    event ``homing``.
+    """
+    if homing is None:
+        return []
+    out: list[Event] = []
+    timed = bool(scenario.plant_updates.get("disturbance", {}).get("force_steps"))
+    shift = getattr(rig, "shift_scenario_clock", None)
+    if callable(shift):
+        shift(offset)
+    elif timed:
+        out.append(Event(0.0, "warning", "homing_clock",
+                         f"the homing move took {offset:.2f} s of the rig's clock: a driver that "
+                         f"simulates this scenario's timed disturbance on its own clock applies "
+                         f"it {offset:.2f} s early"))
+    out += [Event(0.0, e.level, e.code, f"during the homing move (t={e.t:.3f} s): {e.message}")
+            for e in homing.events if e.level == "warning"]
     x = homing.recording.sensors_[:, 0]
-    return Event(0.0, "info", "homing",
-                 f"moved from x = {x[0] * 1e3:.3f} mm to x_r(0) = {target * 1e3:.3f} mm in "
-                 f"{homing.n_done * homing.recording.Ts:.2f} s under the controller; "
-                 f"|x - x_r(0)| = {abs(x[-1] - target) * 1e3:.3f} mm at its end")
+    out.append(Event(0.0, "info", "homing",
+                     f"moved from x = {x[0] * 1e3:.3f} mm to x_r(0) = {target * 1e3:.3f} mm in "
+                     f"{homing.n_done * homing.recording.Ts:.2f} s under the controller; "
+                     f"|x - x_r(0)| = {abs(x[-1] - target) * 1e3:.3f} mm at its end"))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -493,8 +529,8 @@ class DeployResult:
     run_meta : dict
         The log's ``run`` metadata.
     homing : LoopResult or None
-        The homing move before the scenario (``home=True``); when it faulted, :attr:`loop` is
-        that move and the scenario did not run.
+        The homing move before the scenario, if one ran; when it faulted, :attr:`loop` is that
+        move, the scenario did not run and the metrics' E_p and E_rms are NaN.
     """
 
     scenario: Scenario
@@ -595,16 +631,18 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         raise ValueError(f"home must be one of {HOME_MODES}, got {home!r}")
     homing: LoopResult | None = None
     segment = (scenario.name, "scenario", {"description": scenario.description})
-    first: tuple[np.ndarray, np.ndarray | None] | None = None
+    first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None = None
     if home != "off":
         _warm_up(cfg, ref)  # before the first reading, which then serves its sample at once
         try:
             first = (rig.read(), rig.sample_times())
-        except RigIOError:
-            first = None  # the loop reads again and records the rig_io fault
-        # a reading the supervisor refuses (NaN, out of range) is its fault in the scenario
-        x0 = float(first[0][0]) if first is not None else math.nan
-        if math.isfinite(x0) and (home == "always" or abs(x0 - ref[0, 0]) > start_tolerance):
+        except RigIOError as exc:
+            first = exc  # the scenario's loop records it as the rig_io fault at t = 0
+        # a reading the supervisor refuses (NaN, out of range, stale, no supply) is its fault
+        # at the scenario's first sample: nothing moves
+        sup.reset()
+        fit = not isinstance(first, RigIOError) and sup.check_sensors(0.0, *first) is None
+        if fit and (home == "always" or abs(float(first[0][0]) - ref[0, 0]) > start_tolerance):
             homing = homing_move(rig, cfg, float(ref[0, 0]), sup, realtime=realtime,
                                  record_truth=record_truth, fail_safe=fail_safe, first=first)
             first = None
@@ -614,13 +652,12 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         segment = ("homing", "homing", {"description": f"homing move before {scenario.name}"})
     else:
         offset = homing.n_done * float(rig_meta["Ts"]) if homing is not None else 0.0
+        notes = _after_homing(rig, scenario, homing, offset, float(ref[0, 0]))
         loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
                         fail_safe=fail_safe, on_sample=on_sample, first=first,
                         clock_offset=offset, start_tolerance=start_tolerance)
-        if homing is not None:
-            event = _homing_event(homing, float(ref[0, 0]))
-            loop.events.insert(0, event)
-            loop.recording.events_.insert(0, (event.t, event.level, event.code, event.message))
+        loop.events[:0] = notes
+        loop.recording.events_[:0] = [(e.t, e.level, e.code, e.message) for e in notes]
     rec = loop.recording
     a = controller.adaptation
     status = STATUS_FAULT if loop.fault is not None else "ok"
@@ -628,6 +665,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
                               np.asarray(a.theta_min), np.asarray(a.theta_max),
                               float(rig_meta["x_min"]), float(rig_meta["x_max"]), status,
                               duty_top=np.asarray(controller.top_duties))
+    if loop is homing:  # the scenario never ran: no tracking figures for it
+        metrics = dataclasses.replace(metrics, E_p_mm=math.nan, E_rms_mm=math.nan)
     rec.segments_.insert(0, (0.0, segment[0], segment[1],
                              {**segment[2], "duration": float(ref.shape[0] * rec.Ts)}))
     run_meta = {"scenario": scenario.name, "variant": controller.variant,

@@ -7,6 +7,8 @@ implements (:class:`~pneutune.control.rig.protocol.Rig`) plus ``truth()``.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from pneutune.control.contracts.plant import PlantConfig
@@ -82,6 +84,13 @@ class SimRig:
         plant.advance(self.params.vec, self.state, (self.k + 1) * self.Ts, self.supply,
                       self.params.force_steps)
         self.k += 1
+
+    def shift_scenario_clock(self, offset: float) -> None:
+        """Let the plant's timed changes (``disturbance.force_steps``) start ``offset`` seconds
+        later on this rig's clock: the scenario begins after a homing move of that length."""
+        steps = self.params.force_steps.copy()
+        steps[:, 0] += float(offset)
+        self.params = dataclasses.replace(self.params, force_steps=steps)
 
     def rig_metadata(self) -> dict[str, float | str]:
         """The plant's ``rig`` block."""
