@@ -25,7 +25,7 @@ from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.faults import Fault, FaultySimRig
-from pneutune.control.rig.pipe import DeploySimRig, RigIOError
+from pneutune.control.rig.pipe import DeploySimRig, PipeRig, RigIOError
 from pneutune.control.rig.runtime import (
     HOME_HOLD_S,
     HOME_MOVE_S,
@@ -218,3 +218,30 @@ def test_warnings_of_the_homing_move_reach_the_scenario_log(paper):
     assert res.homing is not None and res.homing.fault is None
     during = [e for e in res.loop.events if e.message.startswith("during the homing move")]
     assert [e.code for e in during] == ["reidentify_supply"] and during[0].t == 0.0
+
+
+def test_a_plant_force_step_inside_the_move_waits_for_the_scenario(paper, tmp_path):
+    """A plant file's own force step (40 N at 1 s, under sine-0.5hz) does not fire during the
+    4 s move on the in-process rig, and comes at the scenario's 1 s as without homing. Over the
+    pipe (pipe-sim: a child process timing it on its own clock) deploy warns homing_clock."""
+    plant_cfg = PlantConfig().with_updates({"disturbance": {"force_steps": [[1.0, 40.0]]}})
+    runs = {}
+    for mode in ("off", "always"):
+        rig, plant, seed = sim_rig_for(SINE, plant_cfg, seed=2)
+        runs[mode] = run_scenario(paper, SINE, rig, duration=2.0, plant=plant, seed=seed,
+                                  home=mode, record_truth=True)
+    homing = runs["always"].homing
+    assert homing is not None and np.all(homing.recording.truth_[:, 3] == 0.0)
+    np.testing.assert_array_equal(runs["always"].loop.recording.truth_[:, 3],
+                                  runs["off"].loop.recording.truth_[:, 3])
+    assert runs["off"].loop.recording.truth_[round(1.5 / TS), 3] == pytest.approx(40.0)
+
+    path = tmp_path / "plant.yaml"
+    path.write_text("disturbance: {force_steps: [[1.0, 40.0]]}\n", encoding="utf-8")
+    rig = PipeRig(plant=str(path), scenario=SINE.name, seed=2)
+    try:
+        res = run_scenario(paper, SINE, rig, duration=0.5, home="always",
+                           plant=scenario_plant(plant_cfg, SINE), seed=2)
+    finally:
+        rig.close()
+    assert [e.code for e in res.loop.events] == ["homing_clock", "homing"]

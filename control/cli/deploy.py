@@ -253,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # a driver that ran an earlier scenario fails to start for this one: the runs
                 # so far stand (their logs are written), this one is a rig_io fault at t = 0
                 fault = Event(0.0, "error", "rig_io", f"the rig did not start: {exc}")
-                faults.append({"scenario": sc.name, **fault.as_dict()})
+                faults.append({"scenario": sc.name, "phase": "scenario", **fault.as_dict()})
                 break
         try:
             check_rig_compatible(controller, rig.rig_metadata(), args.controller,
@@ -278,7 +278,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                            "samples": res.homing.n_done,
                            "timing": res.homing.timing.as_dict()}
         results[sc.name] = m
-        timings[sc.name] = res.loop.timing.as_dict()
+        if not homing_fault:  # a move that faulted has its timing under "homing" only
+            timings[sc.name] = res.loop.timing.as_dict()
         rows.append((sc.name, m, sc.paper))
         warnings += [{"scenario": sc.name, **e.as_dict()} for e in res.loop.events
                      if e.level == "warning"]
@@ -300,10 +301,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         info(format_table(rows, f"deploy {args.controller} ({controller.variant}) on rig "
                                 f"{args.rig}, seed {seed}"))
-        for name, timing in timings.items():
-            info(_timing_line(name, timing))
-            if "homing" in results[name]:
-                info(_timing_line(f"{name} (homing)", results[name]["homing"]["timing"]))
+        for name, m in results.items():
+            if "homing" in m:
+                info(_timing_line(f"{name} (homing)", m["homing"]["timing"]))
+            if name in timings:
+                info(_timing_line(name, timings[name]))
         for name, m in results.items():
             for e in m["events"]:
                 if e["code"] == "homing":

@@ -74,7 +74,8 @@ class FaultySimRig(DeploySimRig):
     plant_cfg : PlantConfig or PlantParams
         The plant.
     faults : sequence of Fault
-        What goes wrong, and when.
+        What goes wrong, and when: on the rig's clock from its start, a homing move included
+        (unlike the plant's force steps, which follow the scenario's start).
     x0, pressures0, seed
         As :class:`~pneutune.control.rig.pipe.DeploySimRig`.
     report_sample_times : bool

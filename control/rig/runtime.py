@@ -31,9 +31,9 @@ reading), so a run that needs no homing is the run without it, sample for sample
 the scenario starts as above, from a fresh controller state and its own t = 0; the rig's clock
 runs on (``clock_offset``: the supervisor's staleness rule compares the rig's sample times with
 the loop's time shifted by the homing's length; the control law gets the rig's time). A
-simulated rig in process starts the scenario's timed disturbance after the move
-(``shift_scenario_clock``); for a driver that simulates one on its own clock a warning says it
-comes early. The homing samples are not in the scenario's recording: at t = 0 it gets the
+simulated rig in process holds its timed disturbance during the move and starts it with the
+scenario (``set_scenario_start``); for a driver that simulates one on its own clock a warning
+says it comes early. The homing samples are not in the scenario's recording: at t = 0 it gets the
 move's warnings and an ``info`` event saying where the piston came from and how close it got.
 
 Pacing: without ``realtime`` the loop runs as fast as the rig allows (a simulated rig: about
@@ -426,7 +426,7 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
                 record_truth: bool = False,
                 fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
                 move_s: float = HOME_MOVE_S, hold_s: float = HOME_HOLD_S,
-                first: tuple[np.ndarray, np.ndarray | None] | None = None,
+                first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None = None,
                 on_sample: Callable[[int], None] | None = None) -> LoopResult:
     """Move the piston from where it rests to ``target`` under the controller (homing).
 
@@ -470,22 +470,23 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
                     start_tolerance=math.inf)
 
 
-def _after_homing(rig: Rig, scenario: Scenario, homing: LoopResult | None, offset: float,
-                  target: float) -> list[Event]:
+def _after_homing(rig: Rig, scenario: Scenario, plant: PlantConfig | None,
+                  homing: LoopResult | None, offset: float, target: float) -> list[Event]:
     """Start the scenario's clock on the rig after a homing move; the events for its log.
 
-    A rig with ``shift_scenario_clock`` (the simulated rigs in process) delays the scenario's
-    timed plant changes by ``offset``; any other rig that simulates them does so on its own
-    clock, which a ``warning`` says. The move's warnings follow, at t = 0, then the ``info``
-    event ``homing``.
+    A rig with ``set_scenario_start`` (the simulated rigs in process) times its plant's force
+    steps from the scenario's start; any other rig that simulates timed steps (the plant's, when
+    known, else the scenario's) does so on its own clock, which a ``warning`` says. The move's
+    warnings follow, at t = 0, then the ``info`` event ``homing``.
     """
     if homing is None:
         return []
     out: list[Event] = []
-    timed = bool(scenario.plant_updates.get("disturbance", {}).get("force_steps"))
-    shift = getattr(rig, "shift_scenario_clock", None)
-    if callable(shift):
-        shift(offset)
+    timed = bool(plant.disturbance.force_steps if plant is not None
+                 else scenario.plant_updates.get("disturbance", {}).get("force_steps"))
+    start = getattr(rig, "set_scenario_start", None)
+    if callable(start):
+        start(offset)
     elif timed:
         out.append(Event(0.0, "warning", "homing_clock",
                          f"the homing move took {offset:.2f} s of the rig's clock: a driver that "
@@ -643,6 +644,9 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         sup.reset()
         fit = not isinstance(first, RigIOError) and sup.check_sensors(0.0, *first) is None
         if fit and (home == "always" or abs(float(first[0][0]) - ref[0, 0]) > start_tolerance):
+            start = getattr(rig, "set_scenario_start", None)
+            if callable(start):
+                start(None)  # no timed step fires during the move
             homing = homing_move(rig, cfg, float(ref[0, 0]), sup, realtime=realtime,
                                  record_truth=record_truth, fail_safe=fail_safe, first=first)
             first = None
@@ -652,7 +656,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         segment = ("homing", "homing", {"description": f"homing move before {scenario.name}"})
     else:
         offset = homing.n_done * float(rig_meta["Ts"]) if homing is not None else 0.0
-        notes = _after_homing(rig, scenario, homing, offset, float(ref[0, 0]))
+        notes = _after_homing(rig, scenario, plant, homing, offset, float(ref[0, 0]))
         loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
                         fail_safe=fail_safe, on_sample=on_sample, first=first,
                         clock_offset=offset, start_tolerance=start_tolerance)

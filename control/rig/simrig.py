@@ -49,6 +49,7 @@ class SimRig:
         self.rng = np.random.default_rng(self.params.seed if seed is None else seed)
         self.k = 0
         self.supply = float(self.params.p_s)
+        self._scenario_steps = self.params.force_steps.copy()
         self._sensors = np.zeros(4)
         self._truth = np.zeros(6)
         self.closed = False
@@ -85,11 +86,21 @@ class SimRig:
                       self.params.force_steps)
         self.k += 1
 
-    def shift_scenario_clock(self, offset: float) -> None:
-        """Let the plant's timed changes (``disturbance.force_steps``) start ``offset`` seconds
-        later on this rig's clock: the scenario begins after a homing move of that length."""
-        steps = self.params.force_steps.copy()
-        steps[:, 0] += float(offset)
+    def set_scenario_start(self, t0: float | None) -> None:
+        """Time the plant's timed changes (``disturbance.force_steps``) from the scenario's start.
+
+        Parameters
+        ----------
+        t0 : float or None
+            Rig time at which the scenario starts [s] (after a homing move): each step comes
+            ``t0`` later than in the plant file. None: a homing move is under way, the external
+            force holds its level at t = 0 (a constant load stays, no step fires).
+        """
+        steps = self._scenario_steps.copy()
+        if t0 is None:
+            steps = steps[steps[:, 0] <= 0.0]
+        else:
+            steps[:, 0] += float(t0)
         self.params = dataclasses.replace(self.params, force_steps=steps)
 
     def rig_metadata(self) -> dict[str, float | str]:
