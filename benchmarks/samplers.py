@@ -71,8 +71,8 @@ def run_one(model: ModelConfig, sampler: str, seed: int, settings: ObjectiveSett
     with tempfile.TemporaryDirectory() as tmp:
         spec = StudySpec(str(Path(tmp) / "study.journal"), f"bench-{sampler}-seed{seed}", seed,
                          trials, 1, "benchmark", objective, jobs,
-                         extra_first=None if feas.paper_failure is None
-                         else feas.reference_params, sampler=sampler)
+                         extra_first=() if feas.paper_failure is None
+                         else (feas.reference_params,), sampler=sampler)
         run = run_study(spec, model)
         trials_ = run.study.get_trials(deepcopy=False)
         return best_so_far(trials_, trials), run.wall_s, run.counts_after

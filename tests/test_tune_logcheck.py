@@ -12,14 +12,18 @@ import shutil
 from pathlib import Path
 
 import pytest
+import yaml
+from tune_helpers import QUICK, load_study, only_study_name, run_tune
 
+from pneutune.control.cli.common import run_cli
 from pneutune.control.cli.deploy import main as deploy_main
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
-from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.contracts.model import ModelConfig, save_model
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune.logcheck import RATIO, check_log
+from pneutune.tune.space import motion_R
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "data" / "controller-paper.yaml"
@@ -147,3 +151,43 @@ def test_a_log_of_a_homing_move_that_faulted_is_not_checked(tmp_path: Path) -> N
                                 "controller_sha256": sha256_file(PAPER)})
     lc = check_log(_model(log), load_controller(PAPER), seed=1)
     assert lc.skipped is not None and "homing move" in lc.skipped, lc.skipped
+
+
+def test_the_controller_that_ran_in_the_log_is_a_trial_of_the_study(
+        logged: tuple[Path, Path], tmp_path: Path) -> None:
+    """A re-tune after a re-identification starts from the controller on the rig: tune enqueues
+    the searched parameters of the log's controller right after the paper's (trial 1), with the
+    motion filter's Q/R kept under the model's R. The paper's own controller (the fixture's log)
+    is trial 0 already and is not enqueued twice."""
+    paper_log, _ = logged
+    paper_model = tmp_path / "paper-model.yaml"
+    save_model(_model(paper_log), paper_model)
+    code, _, err = run_tune(["--model", str(paper_model), "--trials", "2", "--out",
+                             str(tmp_path / "paper-tune"), *QUICK])
+    assert code == 0 and "the controller that ran in the log" not in err, err
+
+    data = yaml.safe_load(PAPER.read_text(encoding="utf-8"))
+    data["gains"].update(k1=100.0, k2=9000.0, h3=150.0)
+    data["adaptation"]["gamma"][2] = 3000.0
+    ctrl = tmp_path / "retuned.yaml"
+    ctrl.write_text(yaml.safe_dump(data), encoding="utf-8")
+    log = tmp_path / "run.mcap"
+    with pytest.raises(SystemExit) as exc:
+        run_cli(deploy_main, [str(ctrl), "--scenario", "sine-0.5hz", "--duration", "8",
+                              "--log", str(log), "--seed", "4"])
+    assert exc.value.code == 0
+    model = _model(log)
+    model_path = tmp_path / "model.yaml"
+    save_model(model, model_path)
+    out = tmp_path / "tune"
+    code, _, err = run_tune(["--model", str(model_path), "--trials", "3", "--out", str(out),
+                               *QUICK])
+    assert code == 0, err
+    assert "the controller that ran in the log" in err
+    storage = str(out / "study.journal")
+    trial = load_study(storage, only_study_name(storage)).trials[1].params
+    logged = load_controller(ctrl)
+    assert trial["gains.k1"] == 100.0 and trial["gains.k2"] == 9000.0
+    assert trial["gains.h3"] == 150.0 and trial["adaptation.gamma.b_v"] == 3000.0
+    q_over_r = logged.kalman.motion.Q / logged.kalman.motion.R
+    assert trial["kalman.motion.Q"] / motion_R(model) == pytest.approx(q_over_r, rel=1e-12)

@@ -21,6 +21,7 @@ import dataclasses
 import datetime as _dt
 import hashlib
 import json
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -45,7 +46,7 @@ from pneutune.control.errors import ConfigError
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
-from .logcheck import check_log
+from .logcheck import check_log, logged_controller
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .report import Comparison, compare, write_report
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
@@ -311,9 +312,12 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
                                                       settings.objective.dead_zone)
     jobs = settings.jobs if settings.jobs is not None else (
         min(available_cpus(), objective_settings.n_draws) if settings.workers == 1 else 1)
+    first = [] if feas.paper_failure is None else [feas.reference_params]
+    logged = _logged_trial(model_cfg, name, settings, first, notes)
+    if logged is not None:
+        first.append(logged)
     spec = StudySpec(storage, study_name, settings.seed, settings.trials, settings.workers,
-                     model_sha, objective_settings, jobs,
-                     extra_first=None if feas.paper_failure is None else feas.reference_params,
+                     model_sha, objective_settings, jobs, extra_first=tuple(first),
                      sampler=settings.sampler)
     run = run_study(spec, model_cfg, progress=progress)
     study = run.study
@@ -360,6 +364,31 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
             "behind_paper": behind, "log_check": log_check.as_dict()}
     return TuneResult(tuned, study, best, comp, feas, run, paths, info, guard)
+
+
+def _same(a: dict[str, float], b: dict[str, float]) -> bool:
+    """The same parameters, up to rounding (a Q rescaled by R / R')."""
+    return a.keys() == b.keys() and all(math.isclose(a[k], b[k], rel_tol=1e-9) for k in a)
+
+
+def _logged_trial(model: ModelConfig, model_path: str, settings: TuneSettings,
+                  first: list[dict[str, float]],
+                  notes: Callable[[str], None] | None) -> dict[str, float] | None:
+    """The searched parameters of the controller that ran in the model's log, to enqueue as a
+    trial (:func:`~pneutune.tune.logcheck.logged_controller`): a re-tune after a
+    re-identification starts from the controller on the rig. None when the log names none, it
+    is of another variant, or it is the paper's (trial 0) or the feasibility reference."""
+    cfg, source = logged_controller(model, model_path)
+    if cfg is None:
+        return None
+    space = search_space(model, settings.objective.variant)
+    params = space.params_of(cfg)
+    if params is None or any(_same(params, other)
+                             for other in (space.paper_params(), *first)):
+        return None
+    if notes is not None:
+        notes(f"the controller that ran in the log ({source}) is a trial of the study too")
+    return params
 
 
 def behind_paper(comp: Comparison, trial: int, settings: TuneSettings) -> str | None:

@@ -48,7 +48,8 @@ When the model came from a closed-loop log that `deploy --log` wrote, the contro
 replayed on the model's nominal plant beside the log's measured E_p, and the tuned one with it
 (report.md, "The log's own closed loop"). A warning says when the rig tracked twice as well or
 badly as the model, or when the tuned controller does worse than the logged one there: deploy
-both on the rig and keep the better.
+both on the rig and keep the better. The logged controller is also a trial of the study, right
+after the paper's gains, so a re-tune after a re-identification starts from what ran on the rig.
 
 The study lives in a storage (default DIR/study.journal, an Optuna journal file; optuna-dashboard
 opens it). Re-running the same command resumes it: --trials N is the number of finished

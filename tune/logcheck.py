@@ -37,7 +37,7 @@ from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.errors import PneutuneError
-from pneutune.control.logs.reader import read_run_log
+from pneutune.control.logs.reader import RunLog, read_run_log
 from pneutune.control.sim.closed_loop import compute_metrics, simulate_scenario
 from pneutune.control.sim.model_box import nominal_plant
 from pneutune.control.sim.scenarios import SCENARIOS
@@ -157,6 +157,58 @@ def _find(log: str, model_path: str | None) -> Path | None:
     return next((p for p in cands if p.is_file()), None)
 
 
+def _open_log(model: ModelConfig, model_path: str | None) -> tuple[RunLog | None, str]:
+    """The log model.yaml was identified from, or None and why not."""
+    name = model.source.log
+    path = _find(name, model_path)
+    if path is None:
+        return None, f"the log `{name}` is not at that path"
+    if sha256_file(path) != model.source.sha256:
+        return None, f"`{name}` has changed since identify read it (sha256)"
+    try:
+        return read_run_log(path), ""
+    except PneutuneError as exc:  # it was read by identify; a defect here is worth a line
+        return None, f"`{name}` cannot be read: {exc}"
+
+
+def _run_controller(log: RunLog) -> tuple[ControllerConfig | None, str]:
+    """The controller file the log's run record names, unchanged since the run, or None and
+    why not."""
+    ctrl_name = log.run.get("controller", "")
+    ctrl_path = Path(ctrl_name) if ctrl_name else None
+    if ctrl_path is None or not ctrl_path.is_file():
+        return None, f"the controller that ran (`{ctrl_name or '?'}`) is not at that path"
+    want = log.run.get("controller_sha256")
+    if want and sha256_file(ctrl_path) != want:
+        return None, f"`{ctrl_name}` has changed since the run (sha256)"
+    try:
+        return load_controller(ctrl_path), ""
+    except PneutuneError as exc:
+        return None, f"`{ctrl_name}` does not load: {exc}"
+
+
+def logged_controller(model: ModelConfig,
+                      model_path: str | None = None) -> tuple[ControllerConfig | None, str]:
+    """The controller that ran in ``model``'s log (a closed-loop run that ``deploy --log``
+    wrote), as :func:`check_log` finds it; ``(None, why not)`` otherwise.
+
+    ``tune`` enqueues its parameters as a trial, so that a re-tune after a re-identification
+    starts from the controller on the rig.
+
+    Returns
+    -------
+    (ControllerConfig or None, str)
+        The controller and its file name, or None and the reason.
+    """
+    log, why = _open_log(model, model_path)
+    if log is None:
+        return None, why
+    if "/control/state" not in log.topics:
+        return None, "not a closed-loop run"
+    cfg, why = _run_controller(log)
+    return (cfg, log.run.get("controller", "")) if cfg is not None else (None, why)
+
+
 def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
               model_path: str | None = None) -> LogCheck:
     """Replay the controller of ``model``'s log on its nominal plant (module docstring).
@@ -177,15 +229,9 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
     LogCheck
     """
     name = model.source.log
-    path = _find(name, model_path)
-    if path is None:
-        return LogCheck(name, f"the log `{name}` is not at that path")
-    if sha256_file(path) != model.source.sha256:
-        return LogCheck(name, f"`{name}` has changed since identify read it (sha256)")
-    try:
-        log = read_run_log(path)
-    except PneutuneError as exc:  # it was read by identify; a defect here is worth a line
-        return LogCheck(name, f"`{name}` cannot be read: {exc}")
+    log, why = _open_log(model, model_path)
+    if log is None:
+        return LogCheck(name, why)
     if "/control/state" not in log.topics or "/control/reference" not in log.topics:
         return LogCheck(name, "it is not a closed-loop run (no /control/state): an "
                         "identification or commissioning run")
@@ -198,18 +244,9 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
                         f"({log.run.get('scenario', 'none')!r}; `deploy --log` writes one), "
                         "so there is no reference to replay")
     ctrl_name = log.run.get("controller", "")
-    ctrl_path = Path(ctrl_name) if ctrl_name else None
-    if ctrl_path is None or not ctrl_path.is_file():
-        return LogCheck(name, f"the controller that ran (`{ctrl_name or '?'}`) is not at that "
-                        "path", scenario.name, ctrl_name or None)
-    want = log.run.get("controller_sha256")
-    if want and sha256_file(ctrl_path) != want:
-        return LogCheck(name, f"`{ctrl_name}` has changed since the run (sha256)",
-                        scenario.name, ctrl_name)
-    try:
-        logged = load_controller(ctrl_path)
-    except PneutuneError as exc:
-        return LogCheck(name, f"`{ctrl_name}` does not load: {exc}", scenario.name, ctrl_name)
+    logged, why = _run_controller(log)
+    if logged is None:
+        return LogCheck(name, why, scenario.name, ctrl_name or None)
     Ts = float(log.rig["Ts"])
     if not math.isclose(Ts, model.rig.Ts) or not math.isclose(Ts, logged.rig.Ts):
         return LogCheck(name, f"its Ts {Ts:g} s is not the model's and controller's",
@@ -241,4 +278,4 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
                     (measured.E_p_mm, measured.E_rms_mm), replay(logged), replay(tuned))
 
 
-__all__ = ["NOISE_SEEDS", "RATIO", "TUNED_RATIO", "LogCheck", "check_log"]
+__all__ = ["NOISE_SEEDS", "RATIO", "TUNED_RATIO", "LogCheck", "check_log", "logged_controller"]

@@ -158,6 +158,20 @@ class SearchSpace:
         """The paper's values, clipped into the ranges (enqueued as the first trial)."""
         return {p.name: p.clip(p.paper) for p in self.params}
 
+    def params_of(self, cfg: ControllerConfig) -> dict[str, float] | None:
+        """A controller's searched parameters, clipped into the ranges, for an enqueued trial.
+
+        The motion filter's Q keeps the controller's Q/R (its gains) under this space's R; a
+        θ̂3(0) outside its range is clipped like any other. None when the controller is not
+        of the variant this space searches.
+        """
+        darc = "gains.k1" in self.names
+        if cfg.variant != ("modified_darc" if darc else "pid"):
+            return None
+        values = params_from_controller(cfg)
+        values["kalman.motion.Q"] *= self.R_motion / cfg.kalman.motion.R
+        return {p.name: p.clip(values[p.name]) for p in self.params}
+
     def signature(self) -> list[list[Any]]:
         """Plain data identifying the space (stored with a study, checked on resume)."""
         return [[p.name, p.low, p.high, p.log] for p in self.params]

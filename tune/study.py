@@ -303,10 +303,10 @@ class StudySpec:
     jobs : int
         Threads per worker running a trial's plant draws in parallel (the values do not
         depend on it; :class:`~pneutune.tune.objective.TuneObjective`).
-    extra_first : dict or None
-        Parameters enqueued after the paper's as the second trial of a new study (the
+    extra_first : tuple of dict
+        Parameters enqueued after the paper's, in order, as the next trials of a new study: the
         reference controller of :mod:`pneutune.tune.feasibility` when the paper's gains do not
-        track the nominal plant).
+        track the nominal plant, and the controller that ran in the model's log.
     sampler : str
         ``tpe`` (default) or ``cmaes`` (:mod:`pneutune.tune.samplers`; ``gp`` for benchmarks).
         Stored with the study when not ``tpe``: a study is resumed only with its own sampler.
@@ -320,7 +320,7 @@ class StudySpec:
     model_sha256: str
     settings: ObjectiveSettings = field(default_factory=ObjectiveSettings)
     jobs: int = 1
-    extra_first: dict[str, float] | None = None
+    extra_first: tuple[dict[str, float], ...] = ()
     sampler: str = DEFAULT_SAMPLER
 
     def meta(self, model: ModelConfig) -> dict[str, Any]:
@@ -337,13 +337,15 @@ class StudySpec:
         return {"storage": self.storage, "study_name": self.study_name, "seed": self.seed,
                 "n_trials": self.n_trials, "workers": self.workers,
                 "model_sha256": self.model_sha256, "settings": self.settings.to_dict(),
-                "jobs": self.jobs, "extra_first": self.extra_first, "sampler": self.sampler}
+                "jobs": self.jobs, "extra_first": [dict(p) for p in self.extra_first],
+                "sampler": self.sampler}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> StudySpec:
         """Inverse of :meth:`to_dict`."""
         d = dict(data)
         d["settings"] = ObjectiveSettings.from_dict(d["settings"])
+        d["extra_first"] = tuple(dict(p) for p in d.get("extra_first") or ())
         return cls(**d)
 
 
@@ -359,8 +361,8 @@ def _normalise(obj: Any) -> Any:
 def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
     """Create the study, or load it and check that it was made for this model, seed and settings.
 
-    A new study gets its metadata and, as its first trial, the paper's parameters (then
-    ``spec.extra_first``, if any).
+    A new study gets its metadata and, as its first trial, the paper's parameters (then those
+    of ``spec.extra_first``).
 
     Raises
     ------
@@ -379,8 +381,8 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
         if not study.get_trials(deepcopy=False):
             study.enqueue_trial(search_space(model, spec.settings.variant).paper_params(),
                                 skip_if_exists=True)
-            if spec.extra_first is not None:
-                study.enqueue_trial(dict(spec.extra_first), skip_if_exists=True)
+            for params in spec.extra_first:
+                study.enqueue_trial(dict(params), skip_if_exists=True)
         return study
     have = _normalise(have)
     diffs = [k for k in want if have.get(k) != want[k]]
