@@ -66,6 +66,8 @@ PAPER_FORCE_R: float = 1.0e-4
 PAPER_Q_OVER_R: float = 3.1e7
 #: Index of the viscous coefficient b_v in θ.
 THETA_B_V: int = THETA_NAMES.index("b_v")
+#: The searched parameter θ̂3(0) (``adaptation.theta_0`` of b_v).
+THETA_0_PARAM: str = "adaptation.theta_0.b_v"
 #: θ̂3(0) is searched from the model's nominal θ3 up to this factor times it [-].
 THETA_0_B_V_SPAN: float = 4.0
 #: Headroom of the supervisor's pressure limit over the supply [Pa].
@@ -231,7 +233,7 @@ def search_space(model: ModelConfig, variant: str = "modified_darc") -> SearchSp
         params.append(ParamSpec(f"adaptation.gamma.{name}", lo, hi, True, unit, paper))
     if searches_theta_0(model):
         b_v0 = _b_v_start(model)
-        params.append(ParamSpec("adaptation.theta_0.b_v", b_v0, THETA_0_B_V_SPAN * b_v0, True,
+        params.append(ParamSpec(THETA_0_PARAM, b_v0, THETA_0_B_V_SPAN * b_v0, True,
                                 "N s/m", b_v0))
     params.append(motion_q)
     # Q/R of the force filter over 1e4..1e10 1/s^4: bandwidth ~ (Q/R)^(1/4), 10..316 rad/s.
@@ -312,8 +314,8 @@ def controller_dict(model: ModelConfig, params: Mapping[str, float],
         raise KeyError(f"parameters missing: {missing}")
     th = model.theta
     nominal, theta_max = list(th.nominal), list(th.max)
-    if "adaptation.theta_0.b_v" in params:
-        nominal[THETA_B_V] = params["adaptation.theta_0.b_v"]
+    if THETA_0_PARAM in params:
+        nominal[THETA_B_V] = params[THETA_0_PARAM]
         # the box's top moves up with the start, in proportion (unchanged at the nominal)
         theta_max[THETA_B_V] = max(theta_max[THETA_B_V], nominal[THETA_B_V]
                                    * th.max[THETA_B_V] / _b_v_start(model))
@@ -384,7 +386,7 @@ def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
            "gains.h3": g.h3, "gains.r3": g.r3}
     for name, value in zip(THETA_NAMES, cfg.adaptation.gamma, strict=True):
         out[f"adaptation.gamma.{name}"] = value
-    out["adaptation.theta_0.b_v"] = cfg.adaptation.theta_0[THETA_B_V]
+    out[THETA_0_PARAM] = cfg.adaptation.theta_0[THETA_B_V]
     out["kalman.motion.Q"] = cfg.kalman.motion.Q
     out["kalman.force.Q"] = cfg.kalman.force.Q
     return out
