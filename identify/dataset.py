@@ -60,6 +60,8 @@ class Dataset:
         identification run logs faster than its control period ``rig.Ts``.
     mass_hint : float or None
         The log's ``rig.mass`` hint [kg] (contract 1's optional rig key), if any.
+    scenario : str
+        The scenario the run record names (``deploy --log`` writes it), or "".
     """
 
     path: str
@@ -73,6 +75,7 @@ class Dataset:
     u: np.ndarray
     v: np.ndarray
     sample_period: float = 0.0
+    scenario: str = ""
     mass_hint: float | None = None
 
     @property
@@ -110,7 +113,7 @@ class Dataset:
         return Dataset(path=self.path, sha256=self.sha256, rig=self.rig, t=self.t[sl], x=x,
                        p_a=self.p_a[sl], p_b=self.p_b[sl], p_s=self.p_s[sl], u=self.u[sl],
                        v=_velocity(x, self.rig.Ts), sample_period=self.rig.Ts,
-                       mass_hint=self.mass_hint)
+                       mass_hint=self.mass_hint, scenario=self.scenario)
 
     @property
     def duration(self) -> float:
@@ -272,4 +275,5 @@ def load_dataset(path: str | os.PathLike[str]) -> Dataset:
     x = sens[:, 0]
     return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
                    p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h,
-                   mass_hint=log.rig_hints.get("mass"))
+                   mass_hint=log.rig_hints.get("mass"),
+                   scenario=str(log.run.get("scenario", "")))
