@@ -30,6 +30,16 @@ def sine(t: np.ndarray, center: float, amplitude: float, freq: float) -> np.ndar
                             -amplitude * w * w * np.sin(w * t)])
 
 
+def quintic(t: np.ndarray, duration: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``s(τ) = 10τ³ - 15τ⁴ + 6τ⁵`` (τ = t / duration, clipped to [0, 1]) from 0 to 1 and its
+    first two time derivatives, which are 0 from ``duration`` on [-, 1/s, 1/s²]."""
+    z = np.clip(t / duration, 0.0, 1.0)
+    s = z**3 * (10.0 - 15.0 * z + 6.0 * z * z)
+    ds = np.where(t < duration, 30.0 * z**2 * (1.0 - z) ** 2 / duration, 0.0)
+    dds = np.where(t < duration, 60.0 * z * (1.0 - z) * (1.0 - 2.0 * z) / duration**2, 0.0)
+    return s, ds, dds
+
+
 def smooth_square(t: np.ndarray, center: float, amplitude: float, freq: float,
                   edge: float = EDGE) -> np.ndarray:
     """Square wave with quintic edges of ``edge`` seconds, low level first, shape (N, 3)."""
@@ -39,13 +49,7 @@ def smooth_square(t: np.ndarray, center: float, amplitude: float, freq: float,
         raise ExperimentError(f"the edge must be in (0, half period = {half} s], got {edge}")
     tau = np.mod(t, period)
     rising = tau < half
-    local = np.where(rising, tau, tau - half)
-    z = np.clip(local / edge, 0.0, 1.0)
-    s = z**3 * (10.0 - 15.0 * z + 6.0 * z * z)
-    ds = 30.0 * z**2 * (1.0 - z) ** 2 / edge
-    dds = 60.0 * z * (1.0 - z) * (1.0 - 2.0 * z) / edge**2
-    ds = np.where(local < edge, ds, 0.0)
-    dds = np.where(local < edge, dds, 0.0)
+    s, ds, dds = quintic(np.where(rising, tau, tau - half), edge)
     sign = np.where(rising, 1.0, -1.0)
     x = center + amplitude * sign * (2.0 * s - 1.0)
     return np.column_stack([x, 2.0 * amplitude * sign * ds, 2.0 * amplitude * sign * dds])
@@ -60,13 +64,10 @@ def move_and_hold(t: np.ndarray, x_from: float, x_to: float, move_s: float) -> n
     """
     if not move_s > 0.0:
         raise ExperimentError(f"the move must last > 0 s, got {move_s}")
-    z = np.clip(np.asarray(t, dtype=np.float64) / move_s, 0.0, 1.0)
-    moving = z < 1.0
+    t = np.asarray(t, dtype=np.float64)
+    s, ds, dds = quintic(t, move_s)
     dx = x_to - x_from
-    s = z**3 * (10.0 - 15.0 * z + 6.0 * z * z)
-    ds = np.where(moving, 30.0 * z**2 * (1.0 - z) ** 2 / move_s, 0.0)
-    dds = np.where(moving, 60.0 * z * (1.0 - z) * (1.0 - 2.0 * z) / move_s**2, 0.0)
-    return np.column_stack([np.where(moving, x_from + dx * s, x_to), dx * ds, dx * dds])
+    return np.column_stack([np.where(t < move_s, x_from + dx * s, x_to), dx * ds, dx * dds])
 
 
 @dataclass(frozen=True)
