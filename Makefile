@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 ## demo: the whole loop on the simulated rig: log -> identify -> tune -> deploy -> reports/summary.md
 ## (the identification run logs every 0.5 ms, so identify estimates the moving mass too)
 demo: $(STAMP)
-	$(BIN)/simulate --experiment identification --seed $(SEED) --out reports/demo/run.mcap
+	$(BIN)/record --experiment identification --seed $(SEED) --out reports/demo/run.mcap
 	$(BIN)/identify reports/demo/run.mcap --out reports/identify
 	$(BIN)/tune --model reports/identify/model.yaml --trials $(TRIALS) --seed $(SEED) \
 		--out reports/tune
@@ -56,7 +56,7 @@ bench: $(STAMP)
 
 ## data: regenerate the shipped, seeded identification-run log data/run.mcap
 data: $(STAMP)
-	$(BIN)/simulate --experiment identification --seed $(SEED) --compression-level 19 \
+	$(BIN)/record --experiment identification --seed $(SEED) --compression-level 19 \
 		--out data/run.mcap
 
 clean-venv:

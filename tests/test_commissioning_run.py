@@ -75,7 +75,7 @@ def test_protocol_rejects_a_bad_stroke_or_staircase():
         commissioning_protocol(0.05, 0.0, 0.004)
     for bad in ((0.2, 0.1), (0.0, 0.5), (0.5, 1.2)):
         with pytest.raises(ExperimentError, match="must ascend"):
-            valve_staircases(bad)
+            valve_staircases(RIG.x_min, RIG.x_max, bad)
 
 
 def test_duties_change_only_on_control_instants(fast_run):
@@ -167,15 +167,18 @@ def test_same_seed_same_sensors_other_seed_other_noise():
 
 def test_cli_writes_a_log_identify_reads(tmp_path, capsys):
     """The command writes a control-rate log with the two required topics and the segment
-    labels, no /sim/truth and no /control/reference (another rig's log has neither), run
-    metadata experiment=commissioning and sample_period = rig.Ts; `identify` runs on it."""
+    labels, the end-stop contacts on /rig/events, no /sim/truth and no /control/reference
+    (another rig's log has neither), run metadata experiment=commissioning and sample_period =
+    rig.Ts; `identify` runs on it."""
     path = tmp_path / "c.mcap"
     status = simulate_main(["--experiment", "commissioning", "--seed", "3", "--out", str(path),
                             "--json"])
     assert status == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["experiment"] == "commissioning" and summary["sample_period"] == RIG.Ts
-    assert summary["topics"] == ["/rig/sensors", "/rig/valves", "/experiment/segment"]
+    assert summary["topics"] == ["/rig/sensors", "/rig/valves", "/experiment/segment",
+                                 "/rig/events"]
+    assert [c["stop"] for c in summary["contacts"]] == ["x_max", "x_min"]
 
     log = read_run_log(path)
     assert log.has("/rig/sensors") and log.has("/rig/valves") and log.has("/experiment/segment")

@@ -264,16 +264,21 @@ def test_settings_validation(paper):
 
 
 def test_cli_fault_exits_3(tmp_path):
-    """deploy with limits.x_max = 35 mm: exit status 3, one `error:` line naming the fault,
-    the log written with the event."""
+    """deploy with limits.x_max = 42 mm, 1 mm above the sine's peak, on a rig whose load
+    pushes 1500 N at that peak (t = 0.5 s; 42.35 mm at the next sample): exit status 3, one
+    `error:` line naming the fault, the log written with the event. (A limit inside the
+    reference is refused before anything runs.)"""
     with open(PAPER_YAML, encoding="utf-8") as fh:
         data = yaml.safe_load(fh)
-    data["limits"]["x_max"] = 0.035
+    data["limits"]["x_max"] = 0.042
     cfg = tmp_path / "c.yaml"
     cfg.write_text(yaml.safe_dump(data), encoding="utf-8")
+    push = tmp_path / "push.yaml"
+    push.write_text("schema: pneutune.plant/1\ndisturbance: {force_steps: [[0.5, 1500.0]]}\n",
+                    encoding="utf-8")
     log = tmp_path / "f.mcap"
     proc = subprocess.run([sys.executable, "-m", "pneutune.control.cli.deploy", str(cfg),
-                           "--duration", "2", "--log", str(log)],
+                           "--duration", "2", "--log", str(log), "--rig", f"sim:{push}"],
                           capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 3, proc.stderr
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]

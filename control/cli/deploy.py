@@ -57,7 +57,8 @@ Rigs (--rig):
                       stdin/stdout (a C program on a DAQ card, a Python script on a serial
                       port; docs/deploy.md). Each scenario starts a fresh driver process; in
                       CMD, {scenario} and {seed} are replaced by the scenario's name and the
-                      seed first (a simulated rig needs them, a hardware driver ignores them),
+                      seed first, and {sample_period} by the controller's rig.Ts (a
+                      simulated rig needs them, a hardware driver may ignore them),
                       then CMD is split like a shell would (no shell runs). Its hello gives the
                       rig block (Ts and pwm_hz must equal the controller's); a driver that is
                       not there, dies at once, sends a bad hello or none within 10 s is bad
@@ -121,7 +122,7 @@ def parse_rig(spec: str) -> tuple[str, str | None]:
         raise ExperimentError(f"--rig: unknown rig {kind!r}; expected sim[:P.yaml], "
                               f"pipe-sim[:P.yaml] or exec:\"CMD ARGS\"")
     if kind == "exec":
-        exec_command(arg, "sine-0.5hz", 0)  # the checks, before anything runs
+        exec_command(arg, "sine-0.5hz", 0, 1.0)  # the checks, before anything runs
         return kind, arg
     if sep and not arg:
         raise ExperimentError(f"--rig {spec!r}: the plant path after ':' is empty")
@@ -148,6 +149,45 @@ def check_rig_compatible(controller: ControllerConfig, rig_meta: dict[str, Any],
             raise ConfigError(controller_file, f"rig.{key}",
                               f"must equal the rig's {key} = {theirs!r} {unit} ({rig_source}), "
                               f"got {mine!r} {unit}")
+
+
+def check_reference_in_limits(controller: ControllerConfig, scenario: Any,
+                              rig_meta: dict[str, Any], controller_file: str) -> None:
+    """The scenario's reference must lie within the controller's position limits.
+
+    Raises
+    ------
+    ExperimentError
+        Naming the scenario, the span of its reference on this rig and the limits.
+    """
+    from pneutune.control.rig.runtime import scenario_reference
+
+    x_r = scenario_reference(scenario, rig_meta)[:, 0]
+    lo, hi = float(x_r.min()), float(x_r.max())
+    lim = controller.limits
+    if lo < lim.x_min or hi > lim.x_max:
+        raise ExperimentError(f"scenario {scenario.name}: its reference spans [{lo * 1e3:.2f}, "
+                              f"{hi * 1e3:.2f}] mm on this rig (centred mid-stroke), outside the "
+                              f"limits [{lim.x_min * 1e3:.2f}, {lim.x_max * 1e3:.2f}] mm of "
+                              f"{controller_file}: the rig's stroke is too short for it, or the "
+                              f"controller's limits are another rig's")
+
+
+def check_sampled_at_control_rate(rig: Rig, rig_source: str) -> None:
+    """The rig must sample at its control period: ``deploy`` runs the controller every sample.
+
+    Raises
+    ------
+    ExperimentError
+        A driver whose hello's ``Ts`` (its sample period) differs from its rig block's
+        ``rig.Ts``, with what to do about it.
+    """
+    Ts, control = float(rig.Ts), float(rig.rig_metadata()["Ts"])
+    if not math.isclose(Ts, control, rel_tol=RIG_MATCH_RTOL, abs_tol=0.0):
+        raise ExperimentError(f"rig {rig_source}: the driver samples every {Ts!r} s (its hello's "
+                              f"Ts) but deploy runs the controller at every sample, at the "
+                              f"control period rig.Ts = {control!r} s: start the driver at "
+                              f"rig.Ts (deploy fills {{sample_period}} in its command with it)")
 
 
 def _log_path(log: str | None, scenario: str, several: bool) -> Path:
@@ -215,6 +255,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         rig_source = f"plant {plant_path}" if plant_path else "the default plant, the paper's rig"
         check_rig_compatible(controller, plant_cfg.rig_metadata(), args.controller, rig_source)
     scenarios = resolve_scenarios(args.scenario)
+    if command is None:
+        for sc in scenarios:
+            check_reference_in_limits(controller, sc, plant_cfg.rig_metadata(), args.controller)
     if args.seed is not None and args.seed < 0:
         raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0.0):
@@ -243,7 +286,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 if command is not None:  # the driver's rig is what it says it is: no truth
                     pcfg = None
-                    rig = ExecRig(exec_command(command, sc.name, seed))
+                    rig = ExecRig(exec_command(command, sc.name, seed,
+                                               float(controller.rig.Ts)))
                 else:
                     pcfg = scenario_plant(plant_cfg, sc)
                     rig = PipeRig(plant=plant_path, scenario=sc.name, seed=seed)
@@ -258,6 +302,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             check_rig_compatible(controller, rig.rig_metadata(), args.controller,
                                  f"rig {kind}")
+            check_sampled_at_control_rate(rig, kind)
+            check_reference_in_limits(controller, sc, rig.rig_metadata(), args.controller)
             res = run_scenario(controller, sc, rig, supervisor=Supervisor(settings),
                                realtime=args.realtime, record_truth=command is None,
                                cfg_vec=cfg_vec, fail_safe=fail_safe, duration=args.duration,

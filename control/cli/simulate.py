@@ -3,12 +3,10 @@ closed loop."""
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from pneutune.control.cli.common import (
@@ -50,6 +48,10 @@ Three modes:
       (--sample-period to log faster) and without /sim/truth, like a log from a rig you did
       not build.
 
+  Both are `record --experiment NAME --rig sim[:P.yaml]`, the same code that runs them on
+  a real rig through a driver, supervised (see `record --help`: --plan, --segments,
+  --contact-speed).
+
   Which one: identification makes the log `identify` is designed around (its 0.5 ms
   samples resolve the moving mass); commissioning checks that `identify`, and the model it
   gives, hold up on a log of another design and at the control rate, where the moving mass
@@ -84,55 +86,16 @@ process.
 """
 
 
-def _experiment(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
-    from pneutune.control.rig.commissioning_run import simulate_commissioning
-    from pneutune.control.rig.identification_run import IDENT_SAMPLE_PERIOD, simulate_identification
+def _experiment(args: Any, seed: int) -> int:
+    """``--experiment``: ``record`` on the simulated rig in process (the same code)."""
+    from pneutune.control.cli.record import RecordOptions, execute
 
-    name = args.experiment
     if args.out is None:
-        raise ExperimentError(f"--experiment {name} needs --out F.mcap")
-    bar = tqdm(total=1, unit="sample", desc=f"{name} run", disable=None, leave=False)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-
-    if name == "identification":
-        period = IDENT_SAMPLE_PERIOD if args.sample_period is None else args.sample_period
-        rec = simulate_identification(plant_cfg, seed=seed, progress=progress,
-                                      sample_period=period)
-    else:
-        rec = simulate_commissioning(plant_cfg, seed=seed, progress=progress,
-                                     sample_period=args.sample_period)
-    bar.close()
-    run_meta = {"seed": str(seed), "experiment": name, **plant_meta(args.plant)}
-    # An excitation run's log is large (data/run.mcap: 288k samples at 0.5 ms): no chunk or
-    # message indexes (viewers read it linearly) and /sim/truth at the control period, which no
-    # identification uses (docs/architecture.md, "Run logs").
-    truth_every = max(1, round(plant_cfg.rig.Ts / rec.Ts))
-    rec.save(args.out, rig=plant_cfg.rig_metadata(), run=run_meta, indexed=False,
-             truth_every=truth_every, compression_level=args.compression_level)
-    size = os.path.getsize(args.out)
-    has_reference = rec.reference_ is not None and bool(np.isfinite(rec.reference_).any())
-    topics = ["/rig/sensors", "/rig/valves"]
-    topics += ["/control/reference"] if has_reference else []
-    topics += ["/experiment/segment"]
-    topics += ["/sim/truth"] if rec.truth_ is not None else []
-    summary = {
-        "out": args.out, "experiment": name, "seed": seed,
-        "duration_s": rec.n * rec.Ts, "samples": rec.n, "sample_period": rec.Ts,
-        "segments": len(rec.segments_), "topics": topics,
-        "bytes": size, "sha256": sha256_file(args.out),
-    }
-    if args.json:
-        print_json(summary)
-    else:
-        info(f"wrote {args.out}: {name} run, {summary['duration_s']:.1f} s, "
-             f"{rec.n} samples every {rec.Ts * 1e3:g} ms, {len(rec.segments_)} segments, "
-             f"{size / 1e6:.2f} MB, seed {seed}")
-        info("topics: " + ", ".join(summary["topics"]))
-    return 0
+        raise ExperimentError(f"--experiment {args.experiment} needs --out F.mcap")
+    rig = "sim" + (f":{args.plant}" if args.plant else "")
+    return execute(RecordOptions(experiment=args.experiment, rig=rig, out=args.out,
+                                 sample_period=args.sample_period, seed=seed,
+                                 compression_level=args.compression_level, json=args.json))
 
 
 def _out_path(out: str, scenario: str, several: bool) -> Path:
@@ -222,7 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.scenario or args.plots:
             raise ExperimentError("--scenario and --plots go with --controller, "
                                   "not --experiment")
-        return _experiment(args, plant_cfg, seed)
+        return _experiment(args, seed)
     return _closed_loop(args, plant_cfg, seed)
 
 

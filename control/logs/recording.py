@@ -73,12 +73,15 @@ class Recording:
         self.events_.append((float(t), level, code, message))
 
     def truncate(self, n: int) -> None:
-        """Keep the first ``n`` samples (a run that stopped early)."""
+        """Keep the first ``n`` samples (a run that stopped early), and the segments that
+        start within them."""
         self.n = n
         for name in ("sensors_", "duties_", "truth_", "reference_", "state_"):
             arr = getattr(self, name)
             if arr is not None:
                 setattr(self, name, arr[:n])
+        end = (n - 0.5) * self.Ts  # segment starts lie on sample instants
+        self.segments_ = [s for s in self.segments_ if s[0] < end]
 
     def save(self, path: str | os.PathLike[str], rig: Mapping[str, float | str],
              run: Mapping[str, str], *, indexed: bool = True, truth_every: int = 1,

@@ -50,12 +50,14 @@ import numpy as np
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.recording import Recording
 from pneutune.control.rig.identification_run import (
+    DEFAULT_CONTACT_SPEED,
+    TRAVEL_SPEED,
     Segment,
     SegmentController,
+    approach,
     mode_duties,
+    move_segment,
     position_loop,
-    run_protocol,
-    samples_per_control,
     valve_duties,
 )
 
@@ -94,45 +96,56 @@ def stair_step(duty: float) -> float:
     return min(max(0.036 / duty, 0.24), 0.6)
 
 
-def _fixed(label: str, kind: str, duration: float, params: dict[str, Any],
-           **open_: float) -> Segment:
-    return Segment(label, kind, duration, params, valve_duties(**open_))
+def _fixed(label: str, kind: str, duration: float, params: dict[str, Any], group: str,
+           contacts: tuple[str, ...] = (), **open_: float) -> Segment:
+    return Segment(label, kind, duration, params, valve_duties(**open_), group=group,
+                   contacts=contacts)
 
 
-def valve_staircases(duties: Sequence[float] = STAIR_DUTIES) -> list[Segment]:
+def valve_staircases(x_min: float, x_max: float, duties: Sequence[float] = STAIR_DUTIES,
+                     contact_speed: float = DEFAULT_CONTACT_SPEED) -> list[Segment]:
     """The valve staircases with their preparations (part 2 of the protocol).
 
     Parameters
     ----------
+    x_min, x_max : float
+        Stroke ends [m].
     duties : sequence of float
         Ascending duties of each staircase.
+    contact_speed : float
+        Speed of the approach onto each end stop [m/s].
 
     Returns
     -------
     list of Segment
         For chamber A against the x_max stop (B vented through b_out), then chamber B against
-        the x_min stop (A vented through a_out): drive onto the stop, vent the chamber, climb
-        the charging valve's staircase, top the chamber up to supply, climb the exhausting
-        valve's staircase.
+        the x_min stop (A vented through a_out): a gentle approach onto the stop, press it
+        there, vent the chamber, climb the charging valve's staircase, top the chamber up to
+        supply, climb the exhausting valve's staircase.
     """
     ascending = all(b > a for a, b in itertools.pairwise(duties))
     if not (ascending and 0.0 < duties[0] and duties[-1] <= 1.0):
         raise ExperimentError(f"staircase duties must ascend within (0, 1], got {list(duties)}")
+    band = HOLD_BAND * (x_max - x_min)
     segs: list[Segment] = []
     for chamber, fill, vent, hold, stop, drive in (
             ("a", "a_in", "a_out", "b_out", "x_max", {"a_in": 1.0, "b_out": 1.0}),
             ("b", "b_in", "b_out", "a_out", "x_min", {"a_out": 1.0, "b_in": 1.0})):
         where = {"chamber": chamber, "end_stop": stop, "held_open": hold}
-        segs.append(_fixed(f"prepare:{chamber}:to_{stop}", "prepare", 1.0, where, **drive))
-        segs.append(_fixed(f"prepare:{chamber}:vent", "prepare", 2.0, where,
+        group, contacts = f"valves:{chamber}", (stop,)
+        segs.append(approach(chamber, stop, x_min, x_max, contact_speed, band, logged=False))
+        segs.append(_fixed(f"prepare:{chamber}:to_{stop}", "prepare", 1.0, where, group,
+                           contacts, **drive))
+        segs.append(_fixed(f"prepare:{chamber}:vent", "prepare", 2.0, where, group, contacts,
                            **{vent: 1.0, hold: 1.0}))
         for valve, kind in ((fill, "valve_charge"), (vent, "valve_discharge")):
             if valve == vent:  # start the exhaust staircase from supply pressure
-                segs.append(_fixed(f"prepare:{chamber}:charge", "prepare", 0.5, where,
-                                   **{fill: 1.0, hold: 1.0}))
+                segs.append(_fixed(f"prepare:{chamber}:charge", "prepare", 0.5, where, group,
+                                   contacts, **{fill: 1.0, hold: 1.0}))
             for u in duties:
                 segs.append(_fixed(f"staircase:{valve}:{u:.2f}", kind, stair_step(u),
-                                   {**where, "valve": valve, "duty": u}, **{valve: u, hold: 1.0}))
+                                   {**where, "valve": valve, "duty": u}, group, contacts,
+                                   **{valve: u, hold: 1.0}))
     return segs
 
 
@@ -187,11 +200,17 @@ class VelocityLoop:
         return mode_duties(min(max(u, -1.0), 1.0))
 
 
-def _hold(x: float, duration: float, label: str, band: float) -> Segment:
+def _hold(x: float, duration: float, label: str, band: float, group: str) -> Segment:
     def factory() -> SegmentController:
         return lambda t_rel, y: position_loop(float(y[0]), x, band)
 
-    return Segment(label, "hold", duration, {"x": x}, controller=factory)
+    return Segment(label, "hold", duration, {"x": x}, controller=factory, group=group)
+
+
+def _move(x: float, label: str, band: float, stroke: float, group: str) -> Segment:
+    """A move at :data:`TRAVEL_SPEED` to ``x`` from wherever the piston is, then a hold."""
+    return move_segment(label, "hold", x, TRAVEL_SPEED, band, stroke, group, {"x": x},
+                        logged=False)
 
 
 def velocity_moves(x_min: float, x_max: float, Ts: float,
@@ -218,7 +237,7 @@ def velocity_moves(x_min: float, x_max: float, Ts: float,
     stroke = x_max - x_min
     lo, hi = x_min + END_MARGIN * stroke, x_max - END_MARGIN * stroke
     band = HOLD_BAND * stroke
-    segs = [_hold(lo, 1.0, "hold:start_velocity", band)]
+    segs = [_move(lo, "hold:start_velocity", band, stroke, "friction")]
     for v in speeds:
         travel = min(hi - lo, v * MAX_MOVE_TIME)
         for sign, x_from, x_to in ((1.0, lo, lo + travel), (-1.0, lo + travel, lo)):
@@ -230,8 +249,8 @@ def velocity_moves(x_min: float, x_max: float, Ts: float,
             segs.append(Segment(f"constant_speed:{name}", "constant_speed",
                                 travel / v + 0.4,
                                 {"speed": sign * v, "x_from": x_from, "x_to": x_to},
-                                controller=factory))
-            segs.append(_hold(x_to, 0.5, f"hold:{name}", band))
+                                controller=factory, group="friction"))
+            segs.append(_hold(x_to, 0.5, f"hold:{name}", band, "friction"))
     return segs
 
 
@@ -261,15 +280,18 @@ def bursts(x_min: float, x_max: float,
                               (-1.0, x_max - END_MARGIN * stroke)):
             name = f"{'+' if sign > 0 else '-'}{length * 1e3:g}ms"
             params = {"direction": sign, "burst": length, "brake": brake}
-            segs.append(_hold(x_start, 1.0, f"hold:burst{name}", band))
-            segs.append(Segment(f"burst:{name}", "burst", length, params, mode_duties(sign)))
+            segs.append(_move(x_start, f"hold:burst{name}", band, stroke, "bursts"))
+            segs.append(Segment(f"burst:{name}", "burst", length, params, mode_duties(sign),
+                                group="bursts"))
             segs.append(Segment(f"brake:{name}", "brake", brake, params,
-                                mode_duties(-sign)))
-            segs.append(Segment(f"coast:{name}", "coast", 0.5, params, np.zeros(4)))
+                                mode_duties(-sign), group="bursts"))
+            segs.append(Segment(f"coast:{name}", "coast", 0.5, params, np.zeros(4),
+                                group="bursts"))
     return segs
 
 
-def commissioning_protocol(x_min: float, x_max: float, Ts: float) -> list[Segment]:
+def commissioning_protocol(x_min: float, x_max: float, Ts: float,
+                           contact_speed: float = DEFAULT_CONTACT_SPEED) -> list[Segment]:
     """The segments of the commissioning run for a rig with the given stroke.
 
     Parameters
@@ -278,27 +300,33 @@ def commissioning_protocol(x_min: float, x_max: float, Ts: float) -> list[Segmen
         Stroke ends [m].
     Ts : float
         Control period [s] of the closed-loop segments.
+    contact_speed : float
+        Speed of the approach onto each end stop [m/s].
 
     Returns
     -------
     list of Segment
+        In the groups ``rest`` (first and last segment), ``valves:a``, ``valves:b``,
+        ``friction`` (the velocity moves) and ``bursts``.
     """
     if not x_max > x_min:
         raise ExperimentError(f"x_max > x_min must hold, got x_min={x_min}, x_max={x_max}")
     if not Ts > 0.0:
         raise ExperimentError(f"Ts > 0 must hold, got Ts={Ts}")
-    return [Segment("rest:start", "rest", 1.0, {}, np.zeros(4)),
-            *valve_staircases(),
+    if not (math.isfinite(contact_speed) and contact_speed > 0.0):
+        raise ExperimentError(f"the contact speed must be > 0 m/s, got {contact_speed}")
+    return [Segment("rest:start", "rest", 1.0, {}, np.zeros(4), group="rest"),
+            *valve_staircases(x_min, x_max, contact_speed=contact_speed),
             *velocity_moves(x_min, x_max, Ts),
             *bursts(x_min, x_max),
-            Segment("rest:end", "rest", 1.0, {}, np.zeros(4))]
+            Segment("rest:end", "rest", 1.0, {}, np.zeros(4), group="rest")]
 
 
 def simulate_commissioning(plant_cfg: Any, seed: int | None = None,
                            progress: Callable[[int, int], None] | None = None,
                            sample_period: float | None = None,
                            record_truth: bool = False) -> Recording:
-    """Run the commissioning protocol on the simulated rig.
+    """Run the commissioning protocol on the simulated rig, supervised.
 
     Parameters
     ----------
@@ -320,14 +348,8 @@ def simulate_commissioning(plant_cfg: Any, seed: int | None = None,
         Sensors, duties and segment labels every ``sample_period``. Save it with
         ``plant_cfg.rig_metadata()``.
     """
-    from pneutune.control.rig.simrig import SimRig
+    from pneutune.control.rig.excitation import record_on_sim
 
-    rig_cfg = plant_cfg.rig
-    period = rig_cfg.Ts if sample_period is None else sample_period
-    per_control = samples_per_control(rig_cfg.Ts, period)
-    segments = commissioning_protocol(rig_cfg.x_min, rig_cfg.x_max, rig_cfg.Ts)
-    fast = plant_cfg.with_updates({"rig": {"Ts": rig_cfg.Ts / per_control}})
-    rig = SimRig(fast, seed=seed)
-    # no segment follows a reference, so the band of run_protocol's position loop is unused
-    return run_protocol(rig, segments, band=HOLD_BAND * (rig_cfg.x_max - rig_cfg.x_min),
-                        record_truth=record_truth, per_control=per_control, progress=progress)
+    report = None if progress is None else (lambda done, total, _label: progress(done, total))
+    return record_on_sim("commissioning", plant_cfg, seed=seed, sample_period=sample_period,
+                         progress=report, record_truth=record_truth).recording

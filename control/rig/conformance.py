@@ -7,8 +7,9 @@ when all pass and 1 otherwise. The checks, in :data:`CHECKS` order:
 
 ``hello``
     ``H`` gets ``K`` and a JSON hello with ``protocol`` ``pneutune.rig/1``, a positive ``Ts``
-    and a complete, valid rig block whose ``Ts`` is the hello's
-    (:func:`~pneutune.control.rig.pipe.check_rig_block`), within the startup timeout.
+    and a complete, valid rig block whose ``Ts`` (the control period) the hello's ``Ts`` (the
+    sample period) divides (:func:`~pneutune.control.rig.pipe.check_rig_block`), within the
+    startup timeout; with ``--sample-period S``, the hello's ``Ts`` is S.
 ``sequence``
     ``samples`` rounds of ``R``, ``W`` (all valves closed), ``A``, each answered ``K`` with
     its fixed-size body; no sample time lies after the sample's ``t``.
@@ -219,8 +220,8 @@ def _start(command: Sequence[str], name: str, latency: _Latency) -> tuple[_Sessi
     return s, Ts
 
 
-def _main_session(s: _Session,
-                  samples: int) -> tuple[bool, CheckResult, CheckResult, CheckResult]:
+def _main_session(s: _Session, samples: int, sample_period: float | None = None
+                  ) -> tuple[bool, CheckResult, CheckResult, CheckResult]:
     """hello, sequence and clock, in one session; first whether a usable hello came (one
     that gives Ts and a rig object, complete or not)."""
     try:
@@ -230,9 +231,15 @@ def _main_session(s: _Session,
             return (False, CheckResult("hello", False, str(exc)),
                     _not_run("sequence", "no hello"), _not_run("clock", "no hello"))
         try:
-            check_rig_block(rig, Ts)
-            hello = CheckResult("hello", True, f"{PROTOCOL}, Ts = {Ts:g} s, a complete rig "
-                                               f"block ({len(rig)} keys)")
+            block = check_rig_block(rig, Ts)
+            if sample_period is not None and not math.isclose(Ts, sample_period,
+                                                              rel_tol=1e-9, abs_tol=0.0):
+                raise RigIOError(f"hello: Ts = {Ts!r} s, but --sample-period asked for "
+                                 f"{sample_period!r} s")
+            per = "" if Ts == block["Ts"] else f" sampling {round(float(block['Ts']) / Ts)} " \
+                                               f"times per rig.Ts = {block['Ts']:g} s,"
+            hello = CheckResult("hello", True, f"{PROTOCOL}, Ts = {Ts:g} s,{per} a complete "
+                                               f"rig block ({len(rig)} keys)")
         except RigIOError as exc:
             hello = CheckResult("hello", False, str(exc))
         tol = CLOCK_RTOL * Ts
@@ -351,7 +358,8 @@ def _ending(command: Sequence[str], how: str, latency: _Latency) -> CheckResult:
 
 def check_driver(command: Sequence[str], samples: int = DEFAULT_SAMPLES,
                  timeout: float = DEFAULT_TIMEOUT,
-                 startup_timeout: float = DEFAULT_STARTUP_TIMEOUT) -> ConformanceReport:
+                 startup_timeout: float = DEFAULT_STARTUP_TIMEOUT,
+                 sample_period: float | None = None) -> ConformanceReport:
     """Run every conformance check (module docstring) on a driver program.
 
     Parameters
@@ -365,6 +373,9 @@ def check_driver(command: Sequence[str], samples: int = DEFAULT_SAMPLES,
         after ``E``, ``C`` or end of input [s].
     startup_timeout : float
         Longest allowed wait for the hello [s].
+    sample_period : float, optional
+        The sample period the driver was asked for [s]: the hello's ``Ts`` must equal it (it
+        must divide ``rig.Ts`` in any case).
 
     Returns
     -------
@@ -377,7 +388,7 @@ def check_driver(command: Sequence[str], samples: int = DEFAULT_SAMPLES,
         results = (CheckResult("hello", False, str(exc)),
                    *(_not_run(name, "the driver cannot be started") for name in CHECKS[1:]))
         return ConformanceReport(tuple(command), results, samples, float(timeout))
-    greeted, hello, sequence, clock = _main_session(main, samples)
+    greeted, hello, sequence, clock = _main_session(main, samples, sample_period)
     if greeted:
         bad_duty, opcode = _refusals(command, latency)
         end_of_input = _ending(command, "EOF", latency)
@@ -409,7 +420,8 @@ def add_check_parser(sub: Any) -> None:
 Check that a driver program speaks {PROTOCOL} (docs/deploy.md): start it afresh for each
 session and report each check:
 
-  hello           H gets the protocol, Ts and a complete, valid rig block
+  hello           H gets the protocol, Ts and a complete, valid rig block (Ts divides
+                  rig.Ts; with --sample-period S, Ts = S)
   sequence        --samples rounds of R, W (valves closed), A, each answered K, well formed
   clock           t = k Ts at every R and A: the clock advances by Ts, no sample skipped
   bad_duty        a duty above 1, below 0 or NaN gets E, then the server exits non-zero
@@ -424,13 +436,15 @@ examples:
   python -m pneutune.control.driver check "python -m pneutune.control.driver serve"
   python -m pneutune.control.driver check "./rig_driver --port /dev/ttyUSB0" --timeout 0.1
   python -m pneutune.control.driver check "python my_driver.py --seed {seed}" --samples 2000
+  python -m pneutune.control.driver check "./rig_driver --sample-period {sample_period}" \
+         --sample-period 0.0005
 
 The valves' real state after E, C or end of input cannot be seen over the pipe: check it on
 the rig. The check writes only closed-valve duties, and out-of-range ones the driver must
 refuse.""")
     p.add_argument("command", metavar="CMD",
                    help="the driver program and its arguments, in one quoted string (split "
-                        "like a shell would; {scenario} and {seed} are replaced)")
+                        "like a shell would; {scenario}, {seed} and {sample_period} are replaced)")
     p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
                    help=f"R/W/A rounds of the sequence check (default {DEFAULT_SAMPLES})")
     p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, metavar="S",
@@ -442,6 +456,9 @@ refuse.""")
                    help="the value of {scenario} in CMD (default sine-0.5hz)")
     p.add_argument("--seed", type=int, default=1, metavar="N",
                    help="the value of {seed} in CMD (default 1)")
+    p.add_argument("--sample-period", type=float, metavar="S",
+                   help="the value of {sample_period} in CMD [s]; the hello's Ts must then be "
+                        "S (and S must divide rig.Ts), as `record --sample-period S` requires")
     p.set_defaults(run=check_main)
 
 
@@ -453,9 +470,13 @@ def check_main(args: argparse.Namespace) -> int:
             raise ExperimentError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
     if args.samples < 1:
         raise ExperimentError(f"--samples must be >= 1, got {args.samples}")
-    command = exec_command(args.command, args.scenario, args.seed)
+    if args.sample_period is not None and not (math.isfinite(args.sample_period)
+                                               and args.sample_period > 0.0):
+        raise ExperimentError(f"--sample-period must be > 0 s, got {args.sample_period}")
+    command = exec_command(args.command, args.scenario, args.seed, args.sample_period)
     report = check_driver(command, samples=args.samples, timeout=args.timeout,
-                          startup_timeout=args.startup_timeout)
+                          startup_timeout=args.startup_timeout,
+                          sample_period=args.sample_period)
     print(report.format())
     return 0 if report.passed else 1
 

@@ -34,9 +34,13 @@ request     payload                 reply after ``K``
 ==========  ======================  ===========================================================
 
 An unknown opcode gets ``E``. End of input (the client is gone) makes the server write the
-fail-safe duties and exit 0. The hello's ``rig`` is the rig block: every key of
+fail-safe duties and exit 0. The hello's ``Ts`` is the period the driver samples and
+ticks at (``A``); its ``rig`` is the rig block: every key of
 :data:`~pneutune.control.constants.RIG_KEYS` (optionally the hints of
-:data:`~pneutune.control.constants.RIG_HINT_KEYS`), with ``rig.Ts`` equal to ``Ts``. Sample
+:data:`~pneutune.control.constants.RIG_HINT_KEYS`), whose ``rig.Ts`` is the control period the
+rig is built for. ``Ts`` must divide ``rig.Ts`` into whole samples: a data-acquisition card may
+sample faster than the valves are updated (``record --sample-period``), while ``deploy`` runs
+the controller at every sample and requires ``Ts == rig.Ts``. Sample
 times are NaN for a channel that never delivered. Doubles travel as IEEE 754 bits, so a run
 across the pipe gives bit-identical numbers to the same run in process. The client waits at
 most ``startup_timeout`` for the hello and ``timeout`` for every later reply
@@ -78,8 +82,12 @@ DEFAULT_TIMEOUT = 2.0
 #: Default longest wait for the hello [s]: a driver program starts (a Python one imports its
 #: libraries, about 1 s for the example server on a busy 2-core machine) and opens its hardware.
 DEFAULT_STARTUP_TIMEOUT = 10.0
-#: Placeholders a driver command may contain, replaced for each scenario run.
-COMMAND_PLACEHOLDERS: tuple[str, ...] = ("scenario", "seed")
+#: Placeholders a driver command may contain, replaced for each run: the scenario's name
+#: (``deploy``) or the experiment's (``record``), the noise seed of a simulated rig, and the
+#: sample period the client asks for [s].
+COMMAND_PLACEHOLDERS: tuple[str, ...] = ("scenario", "seed", "sample_period")
+#: Experiment names ``record`` puts in ``{scenario}``: the example server runs the plant as it is.
+EXPERIMENTS: tuple[str, ...] = ("identification", "commissioning")
 #: Largest hello and error message [bytes].
 MAX_HELLO = 64 * 1024
 MAX_ERROR = 4096
@@ -126,11 +134,15 @@ class DeploySimRig(SimRig):
         Initial (p_a, p_b) [Pa abs].
     seed : int, optional
         Sensor-noise seed; default the plant's ``sim.seed``.
+    sample_period : float, optional
+        Sample period [s], dividing the plant's ``rig.Ts`` (:class:`SimRig`).
     """
 
     def __init__(self, plant_cfg: PlantConfig | PlantParams, x0: float | None = None,
-                 pressures0: tuple[float, float] | None = None, seed: int | None = None) -> None:
-        super().__init__(plant_cfg, x0=x0, pressures0=pressures0, seed=seed)
+                 pressures0: tuple[float, float] | None = None, seed: int | None = None,
+                 sample_period: float | None = None) -> None:
+        super().__init__(plant_cfg, x0=x0, pressures0=pressures0, seed=seed,
+                         sample_period=sample_period)
         self.last_duties = np.zeros(4)
         self._warm_up()
 
@@ -202,7 +214,8 @@ def check_rig_block(rig: Mapping[str, Any], Ts: float) -> dict[str, float | str]
     rig : mapping
         The hello's ``rig`` object.
     Ts : float
-        The hello's ``Ts`` [s]; ``rig.Ts`` must equal it.
+        The hello's ``Ts`` [s], the driver's sample period; it must divide ``rig.Ts`` (the
+        control period) into whole samples.
 
     Returns
     -------
@@ -214,7 +227,8 @@ def check_rig_block(rig: Mapping[str, Any], Ts: float) -> dict[str, float | str]
     ------
     RigIOError
         A missing or unknown key, a value of the wrong type or out of the contract's range
-        (:class:`~pneutune.control.contracts.plant.RigConfig`), or ``rig.Ts != Ts``.
+        (:class:`~pneutune.control.contracts.plant.RigConfig`), or a ``Ts`` that does not
+        divide ``rig.Ts``.
     """
     missing = [k for k in RIG_KEYS if k not in rig]
     if missing:
@@ -227,8 +241,9 @@ def check_rig_block(rig: Mapping[str, Any], Ts: float) -> dict[str, float | str]
         block = RigConfig.model_validate({k: rig[k] for k in RIG_KEYS})
     except ValidationError as exc:
         raise RigIOError(str(validation_error("hello", exc, prefix="rig"))) from None
-    if block.Ts != Ts:
-        raise RigIOError(f"hello: rig.Ts must equal Ts = {Ts!r} s, got {block.Ts!r} s")
+    if block.Ts != Ts and not divides(Ts, block.Ts):
+        raise RigIOError(f"hello: Ts = {Ts!r} s (the sample period) must divide rig.Ts = "
+                         f"{block.Ts!r} s (the control period) into whole samples")
     out: dict[str, float | str] = {k: getattr(block, k) for k in RIG_KEYS}
     for k in RIG_HINT_KEYS:
         if k in rig:
@@ -240,21 +255,34 @@ def check_rig_block(rig: Mapping[str, Any], Ts: float) -> dict[str, float | str]
     return out
 
 
-def exec_command(template: str, scenario: str, seed: int) -> list[str]:
-    """The argument list of a driver command for one scenario run.
+def divides(sample_period: float, Ts: float) -> bool:
+    """Whether ``sample_period`` divides ``Ts`` into a whole number of samples (to 1e-9)."""
+    if not (math.isfinite(sample_period) and 0.0 < sample_period <= Ts * (1.0 + 1e-9)):
+        return False
+    k = round(Ts / sample_period)
+    return abs(k * sample_period - Ts) <= 1e-9 * Ts
 
-    ``{scenario}`` and ``{seed}`` in ``template`` are replaced by the scenario's name and the
-    seed, then the text is split like a POSIX shell would (:func:`shlex.split`; no shell runs).
-    A simulated or test rig needs them; a hardware driver ignores them.
+
+def exec_command(template: str, scenario: str, seed: int,
+                 sample_period: float | None = None) -> list[str]:
+    """The argument list of a driver command for one run.
+
+    ``{scenario}``, ``{seed}`` and ``{sample_period}`` in ``template`` are replaced by the
+    scenario's (or the experiment's) name, the seed and the sample period in seconds, then the
+    text is split like a POSIX shell would (:func:`shlex.split`; no shell runs). A simulated or
+    test rig needs them; a hardware driver may ignore them.
 
     Parameters
     ----------
     template : str
         E.g. ``"python -m pneutune.control.driver serve --scenario {scenario} --seed {seed}"``.
     scenario : str
-        Scenario name.
+        Scenario name (``deploy``) or experiment name (``record``).
     seed : int
         Sensor-noise seed of a simulated rig.
+    sample_period : float, optional
+        The period the driver is asked to sample at [s]; required when ``template`` contains
+        ``{sample_period}``.
 
     Returns
     -------
@@ -263,14 +291,21 @@ def exec_command(template: str, scenario: str, seed: int) -> list[str]:
     Raises
     ------
     ExperimentError
-        An empty command, unbalanced quotes, or a placeholder other than ``{scenario}`` and
-        ``{seed}``.
+        An empty command, unbalanced quotes, a placeholder other than those of
+        :data:`COMMAND_PLACEHOLDERS`, or ``{sample_period}`` without a sample period.
     """
-    unknown = [m for m in _PLACEHOLDER.findall(template) if m not in COMMAND_PLACEHOLDERS]
+    found = _PLACEHOLDER.findall(template)
+    unknown = [m for m in found if m not in COMMAND_PLACEHOLDERS]
     if unknown:
         raise ExperimentError(f"driver command {template!r}: unknown placeholder "
-                              f"{{{unknown[0]}}}; it may contain {{scenario}} and {{seed}}")
+                              f"{{{unknown[0]}}}; it may contain "
+                              + ", ".join(f"{{{p}}}" for p in COMMAND_PLACEHOLDERS))
     text = template.replace("{scenario}", scenario).replace("{seed}", str(int(seed)))
+    if "sample_period" in found:
+        if sample_period is None:
+            raise ExperimentError(f"driver command {template!r}: {{sample_period}} needs a "
+                                  f"sample period: give --sample-period S")
+        text = text.replace("{sample_period}", repr(float(sample_period)))
     try:
         argv = shlex.split(text)
     except ValueError as exc:
@@ -282,7 +317,7 @@ def exec_command(template: str, scenario: str, seed: int) -> list[str]:
 
 
 def sim_server_command(plant: str | os.PathLike[str] | None = None, scenario: str | None = None,
-                       seed: int | None = None) -> list[str]:
+                       seed: int | None = None, sample_period: float | None = None) -> list[str]:
     """The command that starts the example rig server (this interpreter, this package)."""
     cmd = [sys.executable, "-m", "pneutune.control.driver", "serve"]
     if plant is not None:
@@ -291,6 +326,8 @@ def sim_server_command(plant: str | os.PathLike[str] | None = None, scenario: st
         cmd += ["--scenario", scenario]
     if seed is not None:
         cmd += ["--seed", str(int(seed))]
+    if sample_period is not None:
+        cmd += ["--sample-period", repr(float(sample_period))]
     return cmd
 
 
@@ -319,9 +356,11 @@ class DriverProcess:
     def __init__(self, command: Sequence[str]) -> None:
         self.command = list(command)
         try:
+            # a session of its own: a Ctrl-C at the terminal reaches the client alone, which
+            # then commands the fail-safe duties and closes the driver in order
             self._proc = subprocess.Popen(self.command, stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                          bufsize=0)
+                                          bufsize=0, start_new_session=True)
         except OSError as exc:
             raise RigIOError(f"cannot start the rig driver `{shlex.join(self.command)}`: "
                              f"{exc.strerror or exc}") from None
@@ -583,14 +622,17 @@ class PipeRig(ExecRig):
         Sensor-noise seed.
     timeout, startup_timeout : float
         As :class:`ExecRig` [s].
+    sample_period : float, optional
+        The server's sample period [s], dividing the plant's ``rig.Ts``; default ``rig.Ts``.
     """
 
     def __init__(self, command: Sequence[str] | None = None,
                  plant: str | os.PathLike[str] | None = None, scenario: str | None = None,
                  seed: int | None = None, timeout: float = DEFAULT_TIMEOUT,
-                 startup_timeout: float = DEFAULT_STARTUP_TIMEOUT) -> None:
+                 startup_timeout: float = DEFAULT_STARTUP_TIMEOUT,
+                 sample_period: float | None = None) -> None:
         super().__init__(command if command is not None
-                         else sim_server_command(plant, scenario, seed),
+                         else sim_server_command(plant, scenario, seed, sample_period),
                          timeout=timeout, startup_timeout=startup_timeout)
 
     def truth(self) -> np.ndarray:
@@ -695,11 +737,18 @@ def add_serve_parser(sub: Any) -> None:
     p.add_argument("--plant", help="plant.yaml (default: the paper's rig)")
     p.add_argument("--scenario", help="apply this scenario's plant changes, start at its x_r(0)")
     p.add_argument("--seed", type=int, help="sensor-noise seed (default: sim.seed)")
+    p.add_argument("--sample-period", type=float, metavar="S",
+                   help="sample (and tick) every S seconds, dividing the plant's rig.Ts "
+                        "(default rig.Ts); the hello's Ts is S, its rig block keeps rig.Ts")
     p.set_defaults(run=serve_main)
 
 
 def serve_main(args: argparse.Namespace) -> int:
     """``serve``: the simulated rig on this process's stdin/stdout until ``C`` or end of input.
+
+    ``--scenario`` takes a scenario's name (its plant changes, the piston at rest at its
+    x_r(0)) or an experiment's name (:data:`EXPERIMENTS`: the plant as it is, the piston at
+    rest mid-stroke), so that one driver command line serves ``deploy`` and ``record``.
 
     A bad plant or scenario is answered with ``E`` (the client waits for the hello) and one
     ``error:`` line on stderr; exit status 2.
@@ -711,7 +760,7 @@ def serve_main(args: argparse.Namespace) -> int:
     try:
         plant_cfg = load_plant(args.plant)
         x0 = None
-        if args.scenario is not None:
+        if args.scenario is not None and args.scenario not in EXPERIMENTS:
             found = resolve_scenarios(args.scenario)
             if len(found) != 1:
                 raise ExperimentError(f"--scenario takes one scenario name, got "
@@ -720,7 +769,7 @@ def serve_main(args: argparse.Namespace) -> int:
             plant_cfg = scenario_plant(plant_cfg, sc)
             x0 = float(sc.reference_array(plant_cfg.rig.Ts,
                                           0.5 * (plant_cfg.rig.x_min + plant_cfg.rig.x_max))[0, 0])
-        rig = DeploySimRig(plant_cfg, x0=x0, seed=args.seed)
+        rig = DeploySimRig(plant_cfg, x0=x0, seed=args.seed, sample_period=args.sample_period)
     except PneutuneError as exc:
         sys.stderr.write(f"error: {exc}\n")
         try:
@@ -731,9 +780,10 @@ def serve_main(args: argparse.Namespace) -> int:
     return serve(rig, sys.stdin.buffer, sys.stdout.buffer)
 
 
-__all__ = ["COMMAND_PLACEHOLDERS", "DEFAULT_STARTUP_TIMEOUT", "DEFAULT_TIMEOUT", "FRAME_DUTIES",
+__all__ = ["COMMAND_PLACEHOLDERS", "DEFAULT_STARTUP_TIMEOUT", "DEFAULT_TIMEOUT", "EXPERIMENTS",
+           "FRAME_DUTIES",
            "FRAME_LENGTH", "FRAME_READ", "FRAME_TIME", "FRAME_TRUTH", "MAX_ERROR", "MAX_HELLO",
            "PROTOCOL",
            "DeploySimRig", "DriverProcess", "ExecRig", "PipeRig", "RigErrorReply", "RigIOError",
-           "add_serve_parser", "check_rig_block", "exec_command", "parse_hello", "serve",
+           "add_serve_parser", "check_rig_block", "divides", "exec_command", "parse_hello", "serve",
            "serve_main", "sim_server_command"]

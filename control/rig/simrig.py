@@ -33,11 +33,24 @@ class SimRig:
         Initial (p_a, p_b) [Pa abs].
     seed : int, optional
         Seed of the sensor noise; default ``sim.seed`` of the plant.
+    sample_period : float, optional
+        Sampling period of the rig [s], dividing the plant's ``rig.Ts`` (a data-acquisition
+        card that samples faster than the valves are updated); default ``rig.Ts``. The rig
+        block (:meth:`rig_metadata`) keeps ``rig.Ts``, the control period the rig is built for.
     """
 
     def __init__(self, plant_cfg: PlantConfig | PlantParams, x0: float | None = None,
-                 pressures0: tuple[float, float] | None = None, seed: int | None = None) -> None:
-        self.params = plant_cfg if isinstance(plant_cfg, PlantParams) else pack_plant(plant_cfg)
+                 pressures0: tuple[float, float] | None = None, seed: int | None = None,
+                 sample_period: float | None = None) -> None:
+        params = plant_cfg if isinstance(plant_cfg, PlantParams) else pack_plant(plant_cfg)
+        self._rig_meta = params.config.rig_metadata()
+        if sample_period is not None and sample_period != params.config.rig.Ts:
+            from pneutune.control.rig.identification_run import samples_per_control
+
+            per_control = samples_per_control(params.config.rig.Ts, sample_period)
+            fast_Ts = params.config.rig.Ts / per_control
+            params = pack_plant(params.config.with_updates({"rig": {"Ts": fast_Ts}}))
+        self.params = params
         cfg = self.params.config
         p = self.params.vec
         self.Ts = float(p[P_TS])
@@ -104,8 +117,8 @@ class SimRig:
         self.params = dataclasses.replace(self.params, force_steps=steps)
 
     def rig_metadata(self) -> dict[str, float | str]:
-        """The plant's ``rig`` block."""
-        return self.params.config.rig_metadata()
+        """The plant's ``rig`` block (``Ts`` the control period, whatever the sample period)."""
+        return dict(self._rig_meta)
 
     def close(self) -> None:
         """Write the fail-safe duties (all closed); idempotent. The plant stays usable."""

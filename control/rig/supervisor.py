@@ -295,12 +295,13 @@ class Supervisor:
             The fault (level ``error``), or None if the sample is fit for the controller.
         """
         s = self.settings
-        x, p_a, p_b, p_s = (float(v) for v in sensors)
-        vals = (x, p_a, p_b, p_s)
-        for i, v in enumerate(vals):
-            if not math.isfinite(v):
-                return Event(t, "error", "sensor_nan",
-                             f"sensor {CHANNELS[i]} reads {v} at t={t:.4f} s")
+        raw = sensors.tolist() if isinstance(sensors, np.ndarray) else sensors
+        x, p_a, p_b, p_s = vals = (float(raw[0]), float(raw[1]), float(raw[2]), float(raw[3]))
+        if not math.isfinite(x + p_a + p_b + p_s):  # one test for the common case
+            for i, v in enumerate(vals):
+                if not math.isfinite(v):
+                    return Event(t, "error", "sensor_nan",
+                                 f"sensor {CHANNELS[i]} reads {v} at t={t:.4f} s")
         x_lo, x_hi = s.x_min - s.x_span_margin, s.x_max + s.x_span_margin
         if not x_lo <= x <= x_hi:
             return Event(t, "error", "sensor_range",
@@ -339,8 +340,12 @@ class Supervisor:
         s = self.settings
         timeout = s.sensor_timeout_s
         if sample_times is not None:
+            stamps = (sample_times.tolist() if isinstance(sample_times, np.ndarray)
+                      else sample_times)
+            if t - min(stamps) <= timeout + _TIME_EPS:  # the common case: all fresh
+                return None
             for i in range(4):
-                age = t - float(sample_times[i])
+                age = t - float(stamps[i])
                 if age > timeout + _TIME_EPS:
                     return Event(t, "error", "sensor_stale",
                                  f"sensor {CHANNELS[i]}: no new sample for {age:.4f} s at "
