@@ -17,19 +17,31 @@ the update mode, delays and the minimum pulse; DESIGN.md), given three numbers p
 Those are found by search (:func:`coordinate_search`, :func:`phase_search`) on the chamber
 equations, whose fit is very sensitive to them: on a closed-loop log of a simulated rig, 0.3 ms
 off in one delay triples the residual, and a wrong carrier phase multiplies it by 15-1000.
+
+The search evaluates about a thousand candidates, each changing one valve (or the phase). Its
+cost (:class:`TimingCost`) therefore switches each valve alone
+(:func:`pneutune.control.plant.valves.valve_open_fractions`, the same switching as
+:func:`~pneutune.control.plant.valves.open_fractions`, which the valves do not interact in),
+keeps each valve's window sums, and looks up repeated candidates (a fifth of them on
+data/run.mcap): there, about 0.6 ms per candidate instead of 5 ms for the four valves together,
+and the same timings, phase and fit as with the four valves: checked decision by decision on
+four logs, a candidate's two costs differ by at most 1e-12 of its value, while no two costs the
+search compared came closer than 1e-6.
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from pneutune.control.contracts.plant import PlantConfig, RigConfig
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
-from pneutune.control.plant.valves import open_fractions
+from pneutune.control.plant.valves import open_fractions, valve_open_fractions
 
 #: Longest delay searched, in PWM periods (the plant allows up to 4).
 MAX_DELAY_PERIODS = 0.5
@@ -71,6 +83,7 @@ class OpenFractions:
         self.Ts = float(Ts)
         self._p = pack_plant(PlantConfig(rig=rig)).vec.copy()
         self._out = np.zeros_like(self.duties)
+        self._columns = [np.ascontiguousarray(self.duties[:, i]) for i in range(4)]
 
     def __call__(self, timings: Sequence[Timing], phase: float) -> np.ndarray:
         """(N, 4) open fractions, valve order a_in, a_out, b_in, b_out.
@@ -90,6 +103,148 @@ class OpenFractions:
                                 self.rig.p0)
         open_fractions(p, s, self.duties, float(phase), self.Ts, self._out)
         return self._out.copy()
+
+    def valve(self, i: int, timings: Sequence[Timing], phase: float) -> np.ndarray:
+        """Open fractions of valve ``i`` alone, for several candidate timings, in one call.
+
+        The valve switches as in :meth:`__call__` (the valves do not interact); only the sums
+        of each sample's open time round differently there, on the finer grid of all four
+        valves' switching events (a few 1e-12 of the fraction on data/run.mcap).
+
+        Parameters
+        ----------
+        i : int
+            Valve index (a_in, a_out, b_in, b_out).
+        timings : sequence of Timing
+            The candidates (M of them).
+        phase : float
+            Carrier time at the first sample, in [0, 1/pwm_hz) [s].
+
+        Returns
+        -------
+        ndarray, (M, N)
+            Open fraction of every sample per candidate, 0..1.
+        """
+        tm = np.array([[t.delay_on, t.delay_off, min(t.min_pulse, t.delay_on)]
+                       for t in timings], dtype=np.float64).reshape(-1, 3)
+        phases = np.full(tm.shape[0], float(phase))
+        out = np.empty((tm.shape[0], self.duties.shape[0]))
+        valve_open_fractions(self._p, self._columns[i], tm, phases, self.Ts, out)
+        return out
+
+
+class TimingCost:
+    """The timing search's cost of a chamber, evaluated valve by valve.
+
+    For valve openings r_i per sample (:meth:`OpenFractions.valve`), chamber ``ch``'s window
+    equations are linear in its two conductances and, where free, its constant term: the cost
+    is the residual sum of squares [kPa^2] of the weighted windows after those are solved by
+    linear least squares (the column of valve i holds the sums of ``gain * r_i * flow_i`` over
+    the chamber's windows, times the window weights). A step of the search changes one valve,
+    so each valve's column is kept per (valve, timing, phase) and only the changed one is
+    recomputed; a candidate evaluated before is looked up.
+
+    Parameters
+    ----------
+    frac : OpenFractions
+        The log's duties, rig and sampling period.
+    windows : sequence of 2 (ndarray, ndarray)
+        Per chamber, the first sample of each window and the sample after its last (indices
+        into the N-1 sample intervals, as integers).
+    gains : sequence of 2 ndarray, (N-1,)
+        Per chamber, pressure change per unit mass flow over one sample [Pa s/kg].
+    flows : sequence of 4 ndarray, (N-1,)
+        Per valve, its fully open flow for unit conductance, signed into its chamber.
+    targets : sequence of 2 ndarray
+        Per chamber, the weighted window increments less the known terms [Pa].
+    weights : sequence of 2 ndarray
+        Per chamber, the window weights.
+    extra : sequence of 2 lists of ndarray
+        Per chamber, further weighted columns solved for with the conductances (a free
+        constant term), after them.
+    keep : int
+        Valve columns kept (least recently used dropped).
+    """
+
+    def __init__(self, frac: OpenFractions, windows: Sequence[tuple[np.ndarray, np.ndarray]],
+                 gains: Sequence[np.ndarray], flows: Sequence[np.ndarray],
+                 targets: Sequence[np.ndarray], weights: Sequence[np.ndarray],
+                 extra: Sequence[Sequence[np.ndarray]], keep: int = 64) -> None:
+        self.frac = frac
+        self._windows = [(np.ascontiguousarray(k0, dtype=np.int64),
+                          np.ascontiguousarray(k1, dtype=np.int64)) for k0, k1 in windows]
+        self._gains = [np.ascontiguousarray(g, dtype=np.float64) for g in gains]
+        self._flows = [np.ascontiguousarray(f, dtype=np.float64) for f in flows]
+        self._targets, self._weights = list(targets), list(weights)
+        self._extra = [list(cols) for cols in extra]
+        self._keep = keep
+        self._columns: OrderedDict[tuple[float, ...], np.ndarray] = OrderedDict()
+        self._costs: dict[tuple[float, ...], float] = {}
+        #: candidates evaluated, and those of them looked up
+        self.evaluations = 0
+        self.repeats = 0
+
+    @staticmethod
+    def _key(tm: Timing) -> tuple[float, float, float]:
+        """What the switching depends on (the minimum pulse is capped at the opening delay)."""
+        return float(tm.delay_on), float(tm.delay_off), float(min(tm.min_pulse, tm.delay_on))
+
+    def _column(self, i: int, tm: Timing, phase: float) -> np.ndarray:
+        key = (i, *self._key(tm), phase)
+        col = self._columns.get(key)
+        if col is not None:
+            self._columns.move_to_end(key)
+            return col
+        ch = i // 2
+        r = self.frac.valve(i, [tm], phase)[0]
+        k0, k1 = self._windows[ch]
+        col = np.empty(k0.shape[0])
+        _window_column(self._gains[ch], r, self._flows[i], k0, k1, self._weights[ch], col)
+        self._columns[key] = col
+        if len(self._columns) > self._keep:
+            self._columns.popitem(last=False)
+        return col
+
+    def __call__(self, ch: int, timings: Sequence[Timing], phase: float) -> float:
+        """Cost of chamber ``ch`` [kPa^2] for the valves' ``timings`` and the carrier phase.
+
+        Parameters
+        ----------
+        ch : int
+            Chamber (0: A, 1: B); only its valves' timings are read.
+        timings : sequence of 4 Timing
+        phase : float
+            Carrier time at the first sample [s].
+        """
+        phase = float(phase)
+        self.evaluations += 1
+        key = (ch, *self._key(timings[2 * ch]), *self._key(timings[2 * ch + 1]), phase)
+        cost = self._costs.get(key)
+        if cost is not None:
+            self.repeats += 1
+            return cost
+        A = np.column_stack([self._column(2 * ch + j, timings[2 * ch + j], phase)
+                             for j in range(2)] + self._extra[ch])
+        y = self._targets[ch]
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        cost = float(np.sum((A @ coef - y) ** 2)) / 1e6
+        self._costs[key] = cost
+        return cost
+
+
+@njit(cache=True)
+def _window_column(gain: np.ndarray, r: np.ndarray, flow: np.ndarray, k0: np.ndarray,
+                   k1: np.ndarray, weight: np.ndarray, out: np.ndarray) -> None:
+    """``out[k] = weight[k] * sum(gain[j] r[j] flow[j], k0[k] <= j < k1[k])``, summed as a
+    running sum (numpy's cumsum: the same floating-point operations in the same order)."""
+    n = gain.shape[0]
+    c = np.empty(n + 1)
+    c[0] = 0.0
+    for j in range(n):
+        term = gain[j] * r[j] * flow[j]
+        c[j + 1] = term if j == 0 else c[j] + term
+    for k in range(k0.shape[0]):
+        out[k] = (c[k1[k]] - c[k0[k]]) * weight[k]
 
 
 def coordinate_search(cost: Callable[[np.ndarray], float], x0: np.ndarray, lo: np.ndarray,
@@ -171,5 +326,5 @@ def timing_bounds(period: float) -> tuple[float, float]:
     return 0.0, MAX_DELAY_PERIODS * period
 
 
-__all__ = ["MAX_DELAY_PERIODS", "PHASE_TOLERANCE", "OpenFractions", "Timing",
+__all__ = ["MAX_DELAY_PERIODS", "PHASE_TOLERANCE", "OpenFractions", "Timing", "TimingCost",
            "coordinate_search", "phase_search", "timing_bounds"]

@@ -227,3 +227,136 @@ def open_fractions(p: np.ndarray, s: np.ndarray, duties: np.ndarray, t0: float, 
             process_events(p, s, t)
         for i in range(4):
             out[k, i] /= Ts
+
+
+@njit(cache=True)
+def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
+                         phases: np.ndarray, Ts: float, out: np.ndarray) -> None:
+    """Open fraction per sample of one valve alone, for several candidate timings in one call.
+
+    Candidate ``m`` is the valve with ``timings[m] = (delay_on, delay_off, min_pulse)`` driven by
+    ``duties`` written at ``phases[m] + k Ts``, switched exactly as :func:`open_fractions`
+    switches a valve (the same comparator, edges, pending transitions, minimum-pulse rule and
+    event tolerances), starting closed. It gives what :func:`open_fractions` gives for this
+    valve when the other three are never commanded open, bit for bit. With the others switching,
+    :func:`open_fractions` sums each sample's open time over the finer grid of all four valves'
+    events, which rounds differently (a few 1e-12 of the fraction on a 144 s log); the switching
+    itself is the same, since the valves do not interact. For searches that vary one valve at a
+    time.
+
+    Parameters
+    ----------
+    p : ndarray
+        Packed plant parameters (only the PWM period and update mode are read).
+    duties : ndarray, (N,)
+        Commanded duty of the valve per sample.
+    timings : ndarray, (M, 3)
+        Per candidate: opening delay, closing delay and minimum pulse [s] (``min_pulse <=
+        delay_on``, as the plant requires).
+    phases : ndarray, (M,)
+        Per candidate: time of the first sample on the PWM carrier's clock [s].
+    Ts : float
+        Sampling period [s].
+    out : ndarray, (M, N)
+        Open fraction of ``[phases[m] + k Ts, phases[m] + (k + 1) Ts)``, 0..1.
+    """
+    period = p[P_TPWM]
+    latched = p[P_LATCHED] > 0.5
+    n = duties.shape[0]
+    pend_t = np.empty(PEND_MAX)
+    pend_v = np.empty(PEND_MAX)
+    for m in range(timings.shape[0]):
+        don = timings[m, 0]
+        doff = timings[m, 1]
+        minp = timings[m, 2]
+        t0 = phases[m]
+        # the valve's slots of a fresh plant state: closed, command low, nothing pending
+        sig = 0.0
+        is_open = 0.0
+        rise = 0.0
+        duty = 0.0
+        cmd = 0.0
+        npend = 0
+        for k in range(n):
+            t = t0 + k * Ts
+            t_end = t0 + (k + 1) * Ts
+            acc = 0.0
+            # set_duties
+            u = duties[k]
+            if not (u > 0.0):
+                u = 0.0
+            elif u > 1.0:
+                u = 1.0
+            cmd = u
+            if not latched:
+                duty = u
+            first = True
+            while True:
+                if not first:
+                    if not (t < t_end - EPS_T):
+                        break
+                    # next_event
+                    kp = _period_index(t, period)
+                    t_next = t_end
+                    t_ps = (kp + 1.0) * period
+                    if t_ps < t_next:
+                        t_next = t_ps
+                    if 0.0 < duty < 1.0:
+                        t_cross = (kp + duty) * period
+                        if t + EPS_T < t_cross < t_next:
+                            t_next = t_cross
+                    if npend > 0:
+                        t_p = pend_t[0]
+                        if t_p < t_next:
+                            t_next = t_p
+                    acc += is_open * (t_next - t)
+                    t = t_next
+                first = False
+                # process_events: latching, due transitions, comparator edges, due again
+                if latched:
+                    kp = _period_index(t, period)
+                    if abs(t - kp * period) <= EPS_T:
+                        duty = cmd
+                for stage in range(2):
+                    j = 0
+                    while j < npend and pend_t[j] <= t + EPS_T:
+                        is_open = pend_v[j]
+                        j += 1
+                    if j > 0:
+                        for q in range(npend - j):
+                            pend_t[q] = pend_t[q + j]
+                            pend_v[q] = pend_v[q + j]
+                        npend -= j
+                    if stage == 1:
+                        break
+                    new_sig = comparator(t, duty, period)
+                    t_tr = -1.0
+                    value = 0.0
+                    if new_sig > sig:
+                        rise = t
+                        t_tr = t + don
+                        value = 1.0
+                    elif new_sig < sig:
+                        if t - rise < minp - EPS_T:  # too short a pulse: drop pending openings
+                            q = 0
+                            for r in range(npend):
+                                if pend_v[r] < 0.5:
+                                    pend_t[q] = pend_t[r]
+                                    pend_v[q] = pend_v[r]
+                                    q += 1
+                            npend = q
+                        t_tr = t + doff
+                        value = 0.0
+                    if new_sig != sig:  # schedule; later pending transitions are cancelled
+                        while npend > 0 and pend_t[npend - 1] > t_tr:
+                            npend -= 1
+                        if npend == PEND_MAX:
+                            for q in range(npend - 1):
+                                pend_t[q] = pend_t[q + 1]
+                                pend_v[q] = pend_v[q + 1]
+                            npend -= 1
+                        pend_t[npend] = t_tr
+                        pend_v[npend] = value
+                        npend += 1
+                    sig = new_sig
+            out[m, k] = acc / Ts
