@@ -1,4 +1,4 @@
-"""``identify``: from a run log (MCAP) to model.yaml, a report and a summary."""
+"""``identify``: from run logs (MCAP) to model.yaml, a report and a summary."""
 
 from __future__ import annotations
 
@@ -27,6 +27,13 @@ Every range in model.yaml has its basis (statistics, data bound or prior), and e
 that tune would sample and that is not a statistical fit is replayed on the held-out log: an end
 the log rules out (its NRMSE over 5 times the best fit's) is moved in, and the report says so.
 
+Several logs of one rig (equal rig metadata; their sampling periods may differ: an
+identification run at 0.5 ms, a partial rerun, a closed-loop log at 4 ms) give one model: each
+fit uses every log where its data are valid (valve tests from the log that has them, friction
+from every log's motion, the mass from the logs sampled fast enough), no fit window straddles
+two logs, every log has the end of each of its 10 s held out, and each basis names the logs it
+came from. A protocol run cut short is used for what it holds; the notes say what it lacks.
+
 Writes DIR/model.yaml (contract pneutune.model/1, atomically), DIR/report.md with a plot of
 each fit, and prints a summary.
 """
@@ -36,19 +43,23 @@ examples:
   identify data/run.mcap
   identify reports/deploy/sine-0.5hz.mcap --out reports/identify-closed-loop
   identify data/run.mcap --mass 1.05 --json
+  identify data/run.mcap reports/deploy/sine-0.5hz.mcap --out reports/identify-both
 
 The moving mass is often not identifiable from 4 ms samples (the piston's mechanical time
 constant M/b_v is far shorter); the model then says so and uses a prior range from the cylinder
 geometry (0.5-4 times piston and rod), or from a rig.mass hint in the log's rig metadata (÷/×
 1.4). Give --mass with the datasheet mass plus the weighed payload to narrow θ1.
-exit status: 0 done, 2 bad log or too little excitation (one error: line), 1 internal error.
+exit status: 0 done, 2 bad log, logs of different rigs or too little excitation (one error:
+line), 1 internal error.
 """
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``identify``."""
     parser = make_parser("identify", DESCRIPTION, EPILOG)
-    parser.add_argument("log", metavar="LOG.mcap", help="the run log to identify from")
+    parser.add_argument("logs", metavar="LOG.mcap", nargs="+",
+                        help="the run log to identify from; several logs of one rig give one "
+                             "model fitted to all of them")
     parser.add_argument("--out", metavar="DIR", default="reports/identify",
                         help="output folder (default: reports/identify)")
     parser.add_argument("--json", action="store_true",
@@ -58,7 +69,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mass-tol", type=float, default=0.05, metavar="REL",
                         help="relative tolerance of --mass (default 0.05)")
     parser.add_argument("--holdout", type=float, default=0.2, metavar="FRAC",
-                        help="fraction of every 10 s of the log kept for validation (default 0.2)")
+                        help="fraction of every 10 s of each log kept for validation "
+                             "(default 0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the bootstraps")
     args = parser.parse_args(argv)
 
@@ -66,13 +78,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .report import format_summary, write_report
 
     check_arguments(args.holdout, args.mass, args.mass_tol)
-    info(f"identify: reading {args.log}")
-    result = identify(args.log, holdout=args.holdout, mass=args.mass, mass_tol=args.mass_tol,
-                      seed=args.seed)
+    logs = " ".join(args.logs)
+    info(f"identify: reading {logs}")
+    result = identify(args.logs[0] if len(args.logs) == 1 else args.logs, holdout=args.holdout,
+                      mass=args.mass, mass_tol=args.mass_tol, seed=args.seed)
     out = Path(args.out)
     model_path = out / "model.yaml"
     save_model(result.model, model_path,
-               header=f"pneutune identify {args.log}\nsee report.md beside this file")
+               header=f"pneutune identify {logs}\nsee report.md beside this file")
     report = write_report(result, out)
     if args.json:
         print_json({"model": str(model_path), "report": str(report),

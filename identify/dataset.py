@@ -4,19 +4,27 @@
 metadata, finite values, monotonic time — by the reader; regular sampling, plausible units,
 excitation — here) and returns a :class:`Dataset` of aligned per-sample arrays in SI units.
 Nothing here uses ``/sim/truth`` or ``/experiment/segment``: a real rig's closed-loop log has
-neither.
+neither. The segment labels are kept only for :mod:`.coverage`: what a protocol run cut short
+lacks (the notes), and whether it may enter the mass's lag estimate.
+
+Several logs of one rig (``identify A.mcap B.mcap``) are loaded one by one
+(:func:`load_datasets`, which checks that their ``rig`` blocks agree) and put side by side by
+:func:`pool`: one :class:`Dataset` at a common sampling period, the logs separated by gaps that
+no fit window can straddle (:class:`Pool`).
 """
 
 from __future__ import annotations
 
+import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.signal import savgol_filter
 
-from pneutune.control.constants import VALVES
+from pneutune.control.constants import RIG_KEYS, VALVES
 from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.errors import LogError
 from pneutune.control.logs.reader import RunLog, read_run_log
@@ -34,6 +42,11 @@ SG_ORDER, SG_SPAN = 3, 0.044
 
 class IdentificationError(LogError):
     """The log cannot support identification (implausible units, too little excitation)."""
+
+
+class RigMismatchError(IdentificationError):
+    """Two logs given to one ``identify`` come from different rigs (their ``rig`` blocks
+    differ)."""
 
 
 @dataclass(frozen=True)
@@ -62,6 +75,19 @@ class Dataset:
         The log's ``rig.mass`` hint [kg] (contract 1's optional rig key), if any.
     scenario : str
         The scenario the run record names (``deploy --log`` writes it), or "".
+    segments : tuple of (float, str, str)
+        ``/experiment/segment`` as (start time [s], label, kind), or () for a log without
+        labels. Only :mod:`.coverage` reads them.
+    experiment : str
+        The excitation protocol the run record names (``record`` and ``simulate
+        --experiment`` write it: ``identification`` or ``commissioning``), or "".
+    run_status : str
+        How the run ended, as its run record says (``record`` writes ``ok``, ``fault`` or
+        ``interrupted``), or "".
+    stopped_in : str
+        The segment a fault or an interrupt stopped (``record`` writes it), or "".
+    selection : str
+        The ``record --segments`` selection the run was made of, or "" for a whole protocol.
     """
 
     path: str
@@ -77,6 +103,11 @@ class Dataset:
     sample_period: float = 0.0
     scenario: str = ""
     mass_hint: float | None = None
+    segments: tuple[tuple[float, str, str], ...] = ()
+    experiment: str = ""
+    run_status: str = ""
+    stopped_in: str = ""
+    selection: str = ""
 
     @property
     def n(self) -> int:
@@ -113,7 +144,10 @@ class Dataset:
         return Dataset(path=self.path, sha256=self.sha256, rig=self.rig, t=self.t[sl], x=x,
                        p_a=self.p_a[sl], p_b=self.p_b[sl], p_s=self.p_s[sl], u=self.u[sl],
                        v=_velocity(x, self.rig.Ts), sample_period=self.rig.Ts,
-                       mass_hint=self.mass_hint, scenario=self.scenario)
+                       mass_hint=self.mass_hint, scenario=self.scenario,
+                       segments=self.segments, experiment=self.experiment,
+                       run_status=self.run_status, stopped_in=self.stopped_in,
+                       selection=self.selection)
 
     @property
     def duration(self) -> float:
@@ -276,4 +310,219 @@ def load_dataset(path: str | os.PathLike[str]) -> Dataset:
     return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
                    p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h,
                    mass_hint=log.rig_hints.get("mass"),
-                   scenario=str(log.run.get("scenario", "")))
+                   scenario=str(log.run.get("scenario", "")), segments=_segments(log),
+                   experiment=str(log.run.get("experiment", "")),
+                   run_status=str(log.run.get("status", "")),
+                   stopped_in=str(log.run.get("stopped_in", "")),
+                   selection=str(log.run.get("segments", "")))
+
+
+def _segments(log: RunLog) -> tuple[tuple[float, str, str], ...]:
+    """``/experiment/segment`` as (t, label, kind), or () when the log has none."""
+    if not log.has("/experiment/segment"):
+        return ()
+    seg = log["/experiment/segment"]
+    return tuple((float(t), str(label), str(kind)) for t, label, kind in
+                 zip(seg.index.to_numpy(), seg["label"], seg["kind"], strict=True))
+
+
+def check_same_rig(datasets: Sequence[Dataset]) -> None:
+    """The logs of one identification must come from one rig: equal ``rig`` blocks.
+
+    Every key of :data:`~pneutune.control.constants.RIG_KEYS` (geometry, supply, the control
+    period ``Ts``, ``pwm_hz``, ``pwm_update``, ...) must agree, and so must a ``rig.mass`` hint
+    that two logs both carry. The sampling period (run metadata ``sample_period``) may differ:
+    an identification run logged every 0.5 ms and a closed-loop log at the 4 ms control rate of
+    the same rig have the same ``rig.Ts``.
+
+    Raises
+    ------
+    RigMismatchError
+        Naming both files and the first key that differs.
+    """
+    if not datasets:
+        return
+    first = datasets[0]
+    ref = first.rig.model_dump()
+    for d in datasets[1:]:
+        other = d.rig.model_dump()
+        for key in RIG_KEYS:
+            a, b = ref[key], other[key]
+            same = (a == b if isinstance(a, str) or isinstance(b, str)
+                    else math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=0.0))
+            if not same:
+                raise RigMismatchError(
+                    d.path, f"rig.{key} is {b!r} but {first.path} has {a!r}; the logs of one "
+                    f"identification must come from one rig (equal rig metadata)")
+        if (first.mass_hint is not None and d.mass_hint is not None
+                and not math.isclose(first.mass_hint, d.mass_hint, rel_tol=1e-9)):
+            raise RigMismatchError(
+                d.path, f"rig.mass is {d.mass_hint!r} but {first.path} has "
+                f"{first.mass_hint!r}; the logs of one identification must come from one rig "
+                f"with one moving mass")
+
+
+def load_datasets(paths: Sequence[str | os.PathLike[str]]) -> list[Dataset]:
+    """Read and check several run logs of one rig (:func:`load_dataset`, :func:`check_same_rig`).
+
+    Raises
+    ------
+    LogError
+        A bad log (as :func:`load_dataset`), or logs of different rigs
+        (:class:`RigMismatchError`).
+    """
+    out: list[Dataset] = []
+    for p in paths:
+        out.append(load_dataset(p))
+        check_same_rig(out)
+    return out
+
+
+def display_names(paths: Sequence[str]) -> tuple[str, ...]:
+    """Short names of the logs for notes and bases: the file names, or the paths as given
+    where two logs share a file name."""
+    names = [Path(p).name for p in paths]
+    if len(set(names)) < len(names):
+        return tuple(str(p) for p in paths)
+    return tuple(names)
+
+
+#: Samples either side of a junction of two pooled logs that no fit uses, as time [s]: longer
+#: than the smoothing any fit applies across samples (the supply pressure's 37-sample
+#: Savitzky-Golay window of the valve fit is 74 ms at 4 ms).
+JUNCTION_MARGIN = 0.08
+#: ... and at least this many samples.
+JUNCTION_MARGIN_SAMPLES = 20
+
+
+def carrier_block(Ts: float, pwm_hz: float, max_samples: int = 2000) -> int:
+    """Fewest samples ``Ts`` apart that make a whole number of PWM periods (1 if none does
+    within ``max_samples``, to 0.1 % of a period).
+
+    Pooled logs start at multiples of it, so that the carrier phase of each log at its first
+    sample is the one it had in its own log (the valve timing stage searches one phase for all).
+    """
+    for b in range(1, max_samples + 1):
+        cycles = b * Ts * pwm_hz
+        if abs(cycles - round(cycles)) < 1e-3 and round(cycles) >= 1:
+            return b
+    return 1
+
+
+@dataclass(frozen=True)
+class Pool:
+    """Several logs of one rig side by side in one :class:`Dataset`.
+
+    The logs' samples are concatenated at their common sampling period, each log starting at a
+    multiple of :func:`carrier_block` samples after a gap of samples with every valve shut (at
+    least a PWM period and the valve delays, so that each log's valves start closed, as in its
+    own log). Samples within :data:`JUNCTION_MARGIN` of a junction and the gaps are left out of
+    every fit (``valid``), so that no window, filter or valve state straddles two logs. With
+    one log the pool is that log itself and ``valid`` is all True: nothing changes.
+
+    Attributes
+    ----------
+    data : Dataset
+        The pooled arrays. ``path`` names every pooled log; ``t`` runs on across the gaps.
+    spans : tuple of (int, int)
+        ``[start, stop)`` of each pooled log in ``data``.
+    valid : ndarray of bool
+        Samples a fit may use.
+    names : tuple of str
+        Short names of the pooled logs (:func:`display_names`), in ``spans`` order.
+    parts : tuple of Dataset
+        The pooled logs themselves, in ``spans`` order.
+    """
+
+    data: Dataset
+    spans: tuple[tuple[int, int], ...]
+    valid: np.ndarray
+    names: tuple[str, ...]
+    parts: tuple[Dataset, ...]
+
+    def masks(self, holdout: float) -> tuple[np.ndarray, np.ndarray]:
+        """Fit and held-out masks: :meth:`Dataset.split` of each log, so that every log has
+        the end of each of its 10 s held out, and only ``valid`` samples."""
+        fit = np.zeros(self.data.n, dtype=bool)
+        held = np.zeros(self.data.n, dtype=bool)
+        for d, (a, b) in zip(self.parts, self.spans, strict=True):
+            f, h = d.split(holdout)
+            fit[a:b], held[a:b] = f, h
+        return fit & self.valid, held & self.valid
+
+    def names_where(self, mask: np.ndarray) -> tuple[str, ...]:
+        """The pooled logs with at least one True sample of ``mask``."""
+        return tuple(name for name, (a, b) in zip(self.names, self.spans, strict=True)
+                     if np.any(mask[a:b]))
+
+
+def pool(datasets: Sequence[Dataset], names: Sequence[str] | None = None) -> Pool:
+    """Put logs of one rig at one sampling period side by side (:class:`Pool`).
+
+    Parameters
+    ----------
+    datasets : sequence of Dataset
+        Logs with equal ``Ts`` and equal rigs (:func:`check_same_rig`).
+    names : sequence of str, optional
+        Their short names (default :func:`display_names` of their paths).
+
+    Returns
+    -------
+    Pool
+
+    Raises
+    ------
+    ValueError
+        No dataset, or sampling periods that differ.
+    """
+    if not datasets:
+        raise ValueError("pool() needs at least one dataset")
+    names = tuple(names) if names is not None else display_names([d.path for d in datasets])
+    if len(datasets) == 1:
+        d = datasets[0]
+        return Pool(d, ((0, d.n),), np.ones(d.n, dtype=bool), names, (d,))
+    h = datasets[0].Ts
+    if any(not math.isclose(d.Ts, h, rel_tol=1e-9) for d in datasets):
+        raise ValueError(f"pool() needs one sampling period, got "
+                         f"{sorted({d.Ts for d in datasets})}")
+    rig = datasets[0].rig
+    block = carrier_block(h, rig.pwm_hz)
+    margin = max(JUNCTION_MARGIN_SAMPLES, math.ceil(JUNCTION_MARGIN / h))
+    # valves shut for a PWM period plus the longest valve delay, and the margins
+    min_gap = max(math.ceil((1.0 / rig.pwm_hz + 0.05) / h) + 1, 2)
+    spans: list[tuple[int, int]] = []
+    pieces: list[tuple[np.ndarray, ...]] = []
+    valid: list[np.ndarray] = []
+    k = 0
+    for j, d in enumerate(datasets):
+        if j > 0:
+            start = -(-(k + min_gap) // block) * block
+            g = start - k
+            prev = datasets[j - 1]
+            first = g // 2
+            # the gap holds the last sample of the log before, then the first of the next: the
+            # filters that run across it see no step
+            rows = [np.r_[np.repeat(a[-1], first), np.repeat(b[0], g - first)]
+                    for a, b in ((prev.x, d.x), (prev.p_a, d.p_a), (prev.p_b, d.p_b),
+                                 (prev.p_s, d.p_s))]
+            pieces.append((*rows, np.zeros((g, 4)), np.zeros(g)))
+            valid.append(np.zeros(g, dtype=bool))
+            k = start
+        pieces.append((d.x, d.p_a, d.p_b, d.p_s, d.u, d.v))
+        ok = np.ones(d.n, dtype=bool)
+        if j > 0:
+            ok[:margin] = False
+        if j < len(datasets) - 1:
+            ok[max(d.n - margin, 0):] = False
+        valid.append(ok)
+        spans.append((k, k + d.n))
+        k += d.n
+    cols = [np.concatenate([p[i] for p in pieces]) for i in range(6)]
+    t0 = datasets[0].t[0]
+    t = t0 + np.arange(k) * h
+    data = Dataset(path=", ".join(d.path for d in datasets), sha256="", rig=rig, t=t,
+                   x=cols[0], p_a=cols[1], p_b=cols[2], p_s=cols[3], u=cols[4], v=cols[5],
+                   sample_period=h, scenario="",
+                   mass_hint=next((d.mass_hint for d in datasets if d.mass_hint is not None),
+                                  None))
+    return Pool(data, tuple(spans), np.concatenate(valid), names, tuple(datasets))

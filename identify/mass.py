@@ -26,9 +26,14 @@ Two things set the interval:
 * the discretisation error of the trapezoid force integral, taken as the change of the estimate
   when every other sample is dropped (a Richardson-style check; the integral's error is of
   second order in the sample period, so the change is about three times the error itself).
+
+Several fast logs of one rig pool their windows (:class:`_StackedLagProblem`): each log keeps
+its own signals, filters and windows, and one tau and one set of coefficients fit them all.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
@@ -164,6 +169,35 @@ class _LagProblem:
         return AA, AX, np.bincount(self.group, self.X * self.X, G)
 
 
+class _StackedLagProblem(_LagProblem):
+    """The problems of several logs as one: rows stacked, windows numbered on, one tau.
+
+    Each log's regressors are built and demeaned per window in its own problem (its own sample
+    period, filters and integrals), so that nothing runs across from one log to the next.
+    """
+
+    def __init__(self, problems: Sequence[_LagProblem]) -> None:
+        self.problems = tuple(problems)
+        self.h = min(p.h for p in self.problems)
+        offsets = np.cumsum([0] + [p.n_groups for p in self.problems])
+        self.group = np.concatenate([p.group + off for p, off in
+                                     zip(self.problems, offsets[:-1], strict=True)])
+        self.n_groups = int(offsets[-1])
+        self.X = np.concatenate([p.X for p in self.problems])
+
+    def design(self, tau: float) -> np.ndarray:
+        """Every log's regressors at ``tau``, stacked."""
+        return np.vstack([p.design(tau) for p in self.problems])
+
+
+def _problem(datasets: Sequence[Dataset], masks: Sequence[np.ndarray], step: int,
+             friction: FrictionIdentifier) -> _LagProblem:
+    """One problem over every log (every ``step``-th sample), stacked when several."""
+    probs = [_LagProblem(d.x[::step], d.F_p[::step], step * d.Ts, m[::step], friction)
+             for d, m in zip(datasets, masks, strict=True)]
+    return probs[0] if len(probs) == 1 else _StackedLagProblem(probs)
+
+
 class LagMassIdentifier(Identifier):
     """Moving mass M = tau b_v from the lag of the position behind the integrated force.
 
@@ -201,8 +235,16 @@ class LagMassIdentifier(Identifier):
         self.n_boot = n_boot
         self.seed = seed
 
-    def fit(self, data: Dataset, mask: np.ndarray | None = None) -> LagMassIdentifier:
+    def fit(self, data: Dataset | Sequence[Dataset],
+            mask: np.ndarray | Sequence[np.ndarray] | None = None) -> LagMassIdentifier:
         """Fit on the sliding windows inside ``mask`` (full-rate data).
+
+        Parameters
+        ----------
+        data : Dataset or sequence of Dataset
+            One log, or several logs of one rig (their windows pooled, module docstring).
+        mask : ndarray of bool, or one per log, optional
+            Samples that may be used (default: all).
 
         Raises
         ------
@@ -210,18 +252,25 @@ class LagMassIdentifier(Identifier):
             Samples too sparse for the PWM ripple (fewer than MIN_SAMPLES_PER_PWM per PWM
             period), or fewer than MIN_WINDOWS sliding windows.
         """
-        h = data.Ts
-        per_pwm = samples_per_pwm(data)
-        if per_pwm < MIN_SAMPLES_PER_PWM:
-            raise IdentificationError(
-                data.path, f"{per_pwm:.1f} samples per PWM period; the lag of the motion "
-                f"behind the pressure force needs at least {MIN_SAMPLES_PER_PWM} (a sample "
-                f"period of {1e3 / (MIN_SAMPLES_PER_PWM * data.rig.pwm_hz):.3g} ms or less)")
-        mask = np.ones(data.n, dtype=bool) if mask is None else mask
+        datasets = [data] if isinstance(data, Dataset) else list(data)
+        if mask is None:
+            masks = [np.ones(d.n, dtype=bool) for d in datasets]
+        elif isinstance(data, Dataset):
+            masks = [np.asarray(mask)]
+        else:
+            masks = [np.asarray(m) for m in mask]
+        name = ", ".join(d.path for d in datasets)
+        for d in datasets:
+            per_pwm = samples_per_pwm(d)
+            if per_pwm < MIN_SAMPLES_PER_PWM:
+                raise IdentificationError(
+                    d.path, f"{per_pwm:.1f} samples per PWM period; the lag of the motion "
+                    f"behind the pressure force needs at least {MIN_SAMPLES_PER_PWM} (a sample "
+                    f"period of {1e3 / (MIN_SAMPLES_PER_PWM * d.rig.pwm_hz):.3g} ms or less)")
         tau_max = 0.05
-        prob = _LagProblem(data.x, data.F_p, h, mask, self.friction)
+        prob = _problem(datasets, masks, 1, self.friction)
         if prob.n_groups < MIN_WINDOWS:
-            raise IdentificationError(data.path, f"only {prob.n_groups} sliding windows of "
+            raise IdentificationError(name, f"only {prob.n_groups} sliding windows of "
                                       f"{LAG_WINDOW:g} s faster than {V_LAG * 1e3:g} mm/s")
         tau, coef, rms = prob.solve(tau_max)
         self.tau_ = tau
@@ -233,7 +282,7 @@ class LagMassIdentifier(Identifier):
         self.n_windows_ = prob.n_groups
         self.bootstrap_ci_ = self._bootstrap(prob, tau)
         try:
-            half = _LagProblem(data.x[::2], data.F_p[::2], 2.0 * h, mask[::2], self.friction)
+            half = _problem(datasets, masks, 2, self.friction)
             t2, c2, _ = half.solve(tau_max)
             self.M_half_ = float(t2 / c2[0])
         except (LogError, ValueError, np.linalg.LinAlgError):

@@ -1,6 +1,8 @@
-"""From a run log to model.yaml: the steps of ``identify`` in order.
+"""From run logs to model.yaml: the steps of ``identify`` in order.
 
-1. :func:`~pneutune.identify.dataset.load_dataset`: data checks, aligned arrays.
+1. :func:`~pneutune.identify.dataset.load_datasets`: data checks, aligned arrays, one rig;
+   :func:`~pneutune.identify.dataset.pool`: several logs side by side at the control instants,
+   no fit window straddling two (with one log, the log itself).
 2. :class:`~pneutune.identify.valves.ValveIdentifier`: C, b per valve, leak, D_a, D_b, the PWM
    curves (QP).
 3. :class:`~pneutune.identify.motion.FrictionIdentifier`: Stribeck friction, F_n, the smooth
@@ -11,13 +13,24 @@
    ``tune`` would sample must reproduce the held-out part nearly as well as the best fit; the
    ends the log rules out are moved in.
 
-Everything is fitted on the first ``1 - holdout`` of every 10 s of the log; the rest of each
-10 s is for validation (:meth:`~pneutune.identify.dataset.Dataset.split`).
+Everything is fitted on the first ``1 - holdout`` of every 10 s of each log; the rest of each
+10 s is for validation (:meth:`~pneutune.identify.dataset.Dataset.split`, per log).
+
+Several logs of one rig (docs/identification.md, "Several logs"): the valve, friction and
+smooth-model fits, the validation and the cross-check run on the pooled control instants (each
+log's rows in one regression); the mass's lag estimate pools the windows of the logs sampled
+fast enough; the stiction bounds are read from each log at its own sampling period and the
+tightest kept; the sensor noise is the smallest any log shows. Each basis names the logs it
+came from. A protocol run cut short (:mod:`.coverage`) is used for what it holds: a fit that
+cannot run on what the logs hold falls back to its prior range, and the notes say so.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,14 +42,16 @@ from pneutune.control.errors import ExperimentError, LogError
 from pneutune.control.sim.scenarios import SCENARIOS
 
 from .bounds import ThetaBounds, theta_bounds
+from .coverage import Coverage, coverage, lacks_mass_segments
 from .crosscheck import CrossCheck, cross_check, narrowed_model
-from .dataset import Dataset, load_dataset
+from .dataset import Dataset, IdentificationError, Pool, display_names, load_datasets, pool
+from .friction_prior import PriorFriction
 from .mass import MIN_SAMPLES_PER_PWM, LagMassIdentifier, samples_per_pwm
 from .mass_prior import mass_prior
-from .motion import FrictionIdentifier, MassIdentifier
-from .stiction import force_noise_std, position_noise_std, stiction_bounds
+from .motion import V_SLIDE, FrictionIdentifier, MassIdentifier
+from .stiction import StictionBounds, force_noise_std, position_noise_std, stiction_bounds
 from .validation import Validation, validate
-from .valves import ValveIdentifier
+from .valves import ValveIdentifier, _longest_run
 
 #: An interval wider than this ratio (hi / lo) means "not identifiable".
 MASS_IDENTIFIABLE_RATIO = 1.5
@@ -81,7 +96,7 @@ class IdentifyResult:
 
     data: Dataset
     valves: ValveIdentifier
-    friction: FrictionIdentifier
+    friction: FrictionIdentifier | PriorFriction
     mass: float
     mass_range: tuple[float, float]
     mass_basis: str
@@ -95,9 +110,21 @@ class IdentifyResult:
     log: Dataset | None = None
     #: the cross-check of the ranges against the held-out log (None when skipped)
     crosscheck: CrossCheck | None = None
+    #: every log at its own sampling period, in the order given (``log`` is the first)
+    logs: tuple[Dataset, ...] = ()
+    #: the logs as pooled into ``data`` (one log: the log itself)
+    pool: Pool | None = None
+    #: what each protocol run holds (None for a log without segment labels)
+    coverage: tuple[Coverage | None, ...] = ()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Short names of the logs (:func:`~pneutune.identify.dataset.display_names`)."""
+        return display_names([d.path for d in self.logs]) if self.logs else (self.data.path,)
 
 
-def _lag_mass(log: Dataset, friction: FrictionIdentifier, fit: np.ndarray, seed: int,
+def _lag_mass(log: Dataset | Sequence[Dataset], friction: FrictionIdentifier,
+              fit: np.ndarray | Sequence[np.ndarray], seed: int,
               notes: list[str]) -> LagMassIdentifier | None:
     """The lag estimate of the mass when its interval is narrow enough, else None (noted)."""
     try:
@@ -115,21 +142,43 @@ def _lag_mass(log: Dataset, friction: FrictionIdentifier, fit: np.ndarray, seed:
     return None
 
 
-def _mass(data: Dataset, friction: FrictionIdentifier, fit: np.ndarray,
+def _mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit: np.ndarray,
           mass: float | None, mass_tol: float, seed: int, notes: list[str],
-          log: Dataset | None = None, log_fit: np.ndarray | None = None,
+          log: Dataset | Sequence[Dataset] | None = None,
+          log_fit: np.ndarray | Sequence[np.ndarray] | None = None,
+          names: Sequence[str] = (), pooled: Pool | None = None,
           ) -> tuple[float, tuple[float, float], str, MassIdentifier | LagMassIdentifier | None]:
+    """The mass, its range, their basis and the estimator (None for a given or prior mass).
+
+    ``log``: the log, or the logs, at their own sampling period that the lag estimate may use
+    (``log_fit`` their fit masks, ``names`` their short names, for the basis of several);
+    ``pooled``: the pool behind ``data``, to name the logs of the integrated estimate.
+    """
     if mass is not None:
         rng = (mass * (1.0 - mass_tol), mass * (1.0 + mass_tol))
         return mass, rng, f"given by the user (±{mass_tol:.0%})", None
-    if log is not None and samples_per_pwm(log) >= MIN_SAMPLES_PER_PWM:
-        lag = _lag_mass(log, friction, log_fit, seed, notes)
+    prior, prior_nominal, prior_basis = mass_prior(data.rig, data.mass_hint)
+    if isinstance(friction, PriorFriction):
+        notes.append(f"mass: not estimated (the friction fit, which its estimates need, could "
+                     f"not run); {prior_basis}: [{prior[0]:.3g}, {prior[1]:.3g}] kg, narrowed "
+                     f"by the cross-check")
+        return prior_nominal, prior, prior_basis, None
+    logs = [] if log is None else [log] if isinstance(log, Dataset) else list(log)
+    fits = ([] if log_fit is None else [log_fit] if isinstance(log, Dataset)
+            else list(log_fit))
+    fast = [j for j, d in enumerate(logs) if samples_per_pwm(d) >= MIN_SAMPLES_PER_PWM]
+    if fast:
+        one = len(logs) == 1
+        lag = _lag_mass(logs[0] if one else [logs[j] for j in fast], friction,
+                        fits[0] if one else [fits[j] for j in fast], seed, notes)
         if lag is not None:
+            periods = "/".join(f"{h * 1e3:g}" for h in sorted({logs[j].Ts for j in fast}))
+            where = (f"{periods} ms samples" if len(names) <= 1 else
+                     f"{periods} ms samples of {', '.join(names[j] for j in fast)}")
             return lag.M_, lag.ci_, (
                 f"99 % bootstrap interval of tau b_v, tau the lag of the motion behind the "
-                f"pressure force ({log.Ts * 1e3:g} ms samples), widened by "
+                f"pressure force ({where}), widened by "
                 f"{lag.discretisation_:.3g} kg, the change on every other sample"), lag
-    prior, prior_nominal, prior_basis = mass_prior(data.rig, data.mass_hint)
     try:
         est = MassIdentifier(friction, seed=seed).fit(data, fit)
     except (LogError, ValueError, np.linalg.LinAlgError) as exc:
@@ -143,6 +192,8 @@ def _mass(data: Dataset, friction: FrictionIdentifier, fit: np.ndarray,
         both = (max(lo, prior[0]), min(hi, prior[1]))
         basis = ("99 % bootstrap interval of the integrated motion equation, widened by "
                  f"{margin:.3g} kg for its bias (0.15 b_v Ts)")
+        if pooled is not None and len(pooled.names) > 1:
+            basis += _from(pooled.names_where(fit & (np.abs(data.v) > V_SLIDE)))
         if both[0] < both[1]:
             if both != (lo, hi):
                 basis += f", intersected with the {prior_basis}"
@@ -184,7 +235,7 @@ def check_arguments(holdout: float, mass: float | None, mass_tol: float) -> None
         raise ExperimentError(f"--holdout must be in [0.05, 0.5], got {holdout}")
 
 
-def _scenario_notes(data: Dataset) -> list[str]:
+def _scenario_notes(data: Dataset, name: str | None = None) -> list[str]:
     """What the run record's scenario (``deploy --log``) puts in the log that the model lacks.
 
     A scenario with timed external force steps (``disturbance-0.5hz``: 30 N from 7.6 s, 80 N
@@ -198,22 +249,48 @@ def _scenario_notes(data: Dataset) -> list[str]:
     if not steps:
         return []
     listed = ", ".join(f"{f:g} N from {t:g} s" for t, f in steps)
-    return [f"log: its run record names the scenario {scenario.name}, whose external force steps "
-            f"({listed}) the model has no term for: F_n and the friction fit absorb them, and "
-            f"their ranges widen; identify a run without them (e.g. `deploy --scenario "
-            f"sine-0.5hz --log`) for the model tune should use"]
+    which = "log" if name is None else f"log {name}"
+    return [f"{which}: its run record names the scenario {scenario.name}, whose external "
+            f"force steps ({listed}) the model has no term for: F_n and the friction fit "
+            f"absorb them, and their ranges widen; identify a run without them (e.g. `deploy "
+            f"--scenario sine-0.5hz --log`) for the model tune should use"]
 
 
-def identify(path: str | os.PathLike[str], holdout: float = 0.2, mass: float | None = None,
+LogPaths = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+
+
+def log_paths(logs: LogPaths) -> list[str | os.PathLike[str]]:
+    """The run logs of :func:`identify`'s ``logs`` argument, as a list.
+
+    Raises
+    ------
+    ExperimentError
+        No log, or one log given twice.
+    """
+    paths = [logs] if isinstance(logs, (str, os.PathLike)) else list(logs)
+    if not paths:
+        raise ExperimentError("identify needs at least one run log")
+    seen: dict[str, str] = {}
+    for p in paths:
+        key = os.path.realpath(p)
+        if key in seen:
+            raise ExperimentError(f"{p}: given twice (as {seen[key]}); give each log once")
+        seen[key] = str(p)
+    return paths
+
+
+def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
              mass_tol: float = 0.05, seed: int = 0, check: bool = True) -> IdentifyResult:
-    """Identify the plant behind a run log.
+    """Identify the plant behind one run log, or one model behind several logs of one rig.
 
     Parameters
     ----------
-    path : path-like
-        The MCAP run log (contract 1).
+    logs : path-like, or sequence of path-like
+        The MCAP run log (contract 1), or several logs of one rig (equal ``rig`` metadata;
+        their sampling periods may differ): one model is fitted to all of them
+        (docs/identification.md, "Several logs").
     holdout : float
-        Fraction of every 10 s of the log kept for validation (its end), in [0.05, 0.5].
+        Fraction of every 10 s of each log kept for validation (its end), in [0.05, 0.5].
     mass : float, optional
         Known total moving mass [kg]; otherwise it is estimated (or the prior range is used).
     mass_tol : float
@@ -221,46 +298,83 @@ def identify(path: str | os.PathLike[str], holdout: float = 0.2, mass: float | N
     seed : int
         Seed of the bootstraps.
     check : bool
-        Cross-check every range end against the held-out log and move in those it rules out
+        Cross-check every range end against the held-out logs and move in those they rule out
         (:mod:`~pneutune.identify.crosscheck`).
+
+    Returns
+    -------
+    IdentifyResult
 
     Raises
     ------
     LogError
-        A bad log (typed, naming the file and what is wrong) or too little excitation.
+        A bad log (typed, naming the file and what is wrong), logs of different rigs
+        (:class:`~pneutune.identify.dataset.RigMismatchError`, naming both files and the key)
+        or too little excitation.
     ExperimentError
-        An argument out of range (:func:`check_arguments`).
+        An argument out of range (:func:`check_arguments`), or a log given twice.
     """
     check_arguments(holdout, mass, mass_tol)
-    log = load_dataset(path)
+    paths = log_paths(logs)
+    full = load_datasets(paths)
+    names = display_names([d.path for d in full])
+    several = len(full) > 1
+    log = full[0]
     # valves, PWM curve, friction and validation work on the control instants; the mass on
     # every logged sample (an identification run logs 8 samples per control period)
-    data = log.at_control_rate()
-    fit, held = data.split(holdout)
-    notes: list[str] = _scenario_notes(data)
-    valves = ValveIdentifier().fit(data, fit)
+    ctrl = [d.at_control_rate() for d in full]
+    covs = tuple(coverage(d, n) for d, n in zip(full, names, strict=True))
+    partial = any(c is not None and c.partial for c in covs)
+    notes: list[str] = [c.summary() for c in covs if c is not None and c.partial]
+    for d, n in zip(ctrl, names, strict=True):
+        notes += _scenario_notes(d, n if several else None)
+    members = _pool_members(ctrl, names, notes)
+    pl = pool([ctrl[j] for j in members], [names[j] for j in members])
+    data = pl.data
+    fit, held = pl.masks(holdout)
+    # the valves on the pool of the logs that test them (with one log: that log)
+    vpl = _valve_pool(pl, fit, notes)
+    vfit = vpl.masks(holdout)[0]
+    valves = (ValveIdentifier(allow_unopened=True) if partial else ValveIdentifier()).fit(
+        vpl.data, vfit)
     notes += valves.notes_
-    friction = FrictionIdentifier(mass=mass if mass is not None else 1.0).fit(data, fit)
-    M, M_range, M_basis, M_est = _mass(data, friction, fit, mass, mass_tol, seed, notes,
-                                       log=log, log_fit=log.split(holdout)[0])
-    if mass is None:  # redo the (small) inertial term with the mass used
+    friction = _friction(data, fit, mass if mass is not None else 1.0, partial, notes)
+    # the mass's lag estimate: every log sampled fast enough, but not a protocol run without the
+    # segments that excite the mass (coverage.lacks_mass_segments)
+    lag_logs = [j for j in range(len(full)) if not lacks_mass_segments(covs[j])]
+    M, M_range, M_basis, M_est = _mass(
+        data, friction, fit, mass, mass_tol, seed, notes,
+        log=(log if not several else [full[j] for j in lag_logs]) if lag_logs else None,
+        log_fit=(log.split(holdout)[0] if not several else
+                 [full[j].split(holdout)[0] for j in lag_logs]) if lag_logs else None,
+        names=[names[j] for j in lag_logs] if several else (), pooled=pl)
+    if mass is None and not isinstance(friction, PriorFriction):
+        # redo the (small) inertial term with the mass used
         friction = FrictionIdentifier(mass=M).fit(data, fit)
+    if len(pl.spans) > 1 and not isinstance(friction, PriorFriction):
+        notes += friction_disagreements(pl, fit, M)
     boot = friction.smooth_bootstrap(n_boot=300, block=50, seed=seed)
     theta = theta_bounds(M, M_range, M_basis, friction.smooth_, boot, friction.b_v_,
                          friction.F_C_, friction.F_S_, valves.D_, valves.D_std_,
                          _low_speed_margin(data, friction, notes),
                          stiction_resolved=friction.stiction_resolved_)
-    if not friction.stiction_resolved_:
+    if isinstance(friction, PriorFriction):
+        theta = _prior_theta(theta, friction)
+    elif not friction.stiction_resolved_:
         notes.append("friction: the stiction peak is not resolved by the sliding samples "
                      f"(F_S {friction.F_S_:.3g} N, F_C {friction.F_C_:.3g} N, exponent "
                      f"{friction.alpha_:.3g}); the Stribeck velocity and exponent are weakly "
                      "identified from 4 ms samples, and θ4 allows a stiction excess of half "
                      "F_C")
+    sources = _Sources(pl, vpl, vfit, valves, friction) if several else None
+    if sources is not None:
+        theta = sources.theta(theta)
+    notes += _coverage_notes(covs, pl, valves, friction, M_est, M_basis, sources)
     period = 1.0 / data.rig.pwm_hz
     plant_cfg = _plant(data, valves, friction, M)
     validation = validate(data, held, plant_cfg)
-    model, ranges = _model(data, log, valves, friction, M, M_range, M_basis, theta,
-                           validation, notes, period)
+    model, ranges = _model(data, full, valves, friction, M, M_range, M_basis, theta,
+                           validation, notes, period, sources)
     cc = None
     if check:
         cc = cross_check(data, held, model, keys=ranges.unsupported)
@@ -268,7 +382,234 @@ def identify(path: str | os.PathLike[str], holdout: float = 0.2, mass: float | N
         model = narrowed_model(model, cc.box).model_copy(update={"notes": tuple(notes)})
         M_range = (model.theta.min[0], model.theta.max[0])
     return IdentifyResult(data, valves, friction, M, M_range, M_basis, M_est, theta,
-                          validation, model, plant_cfg, notes, log, cc)
+                          validation, model, plant_cfg, notes, log, cc, tuple(full), pl, covs)
+
+
+def _pool_members(ctrl: Sequence[Dataset], names: Sequence[str], notes: list[str]) -> list[int]:
+    """The logs the pooled fits use: those at the control instants (``rig.Ts``); if none is,
+    those at the sampling period with the most data. A log left out is noted."""
+    if len(ctrl) == 1:
+        return [0]
+    rig_Ts = ctrl[0].rig.Ts
+    at = [j for j, d in enumerate(ctrl) if np.isclose(d.Ts, rig_Ts, rtol=1e-9)]
+    if not at:
+        totals: dict[float, float] = {}
+        for d in ctrl:
+            totals[d.Ts] = totals.get(d.Ts, 0.0) + d.duration
+        best = max(totals, key=lambda h: totals[h])
+        at = [j for j, d in enumerate(ctrl) if d.Ts == best]
+    for j, d in enumerate(ctrl):
+        if j not in at:
+            notes.append(
+                f"log {names[j]}: sampled every {d.Ts * 1e3:g} ms with duties that change "
+                f"inside a {rig_Ts * 1e3:g} ms control period, so it cannot be cut to the "
+                f"control instants of the others; the valve, friction and validation fits "
+                f"leave it out (its samples still enter the mass, stiction and noise "
+                f"estimates)")
+    return at
+
+
+def _valve_pool(pl: Pool, fit: np.ndarray, notes: list[str]) -> Pool:
+    """The logs the valve fit uses, pooled: the logs that test the valves, and the others only
+    where they hold the one record of a valve those do not test.
+
+    A valve is tested by a log that holds it at full duty for :data:`FULL_OPEN_PIN_S` at a
+    stretch (a whole charge or vent): that pins its C and b (within 0.1 % and 1 % on
+    data/run.mcap). Partial openings under a closed loop give C within 4 % at best
+    (docs/identification.md), and pooled with the tests they only pull C and b off them: on
+    data/run.mcap with a 12 s closed loop of the same plant, b of a_out moved from +0.63 % to
+    +0.81 %. With one log, or no log that tests a valve, every log is used.
+    """
+    if len(pl.spans) == 1:
+        return pl
+    u = pl.data.u
+    pins = []
+    for a, b in pl.spans:
+        f = fit[a:b]
+        pins.append({i for i in range(4)
+                     if _longest_run(f & (u[a:b, i] >= 0.999)) * pl.data.Ts >= FULL_OPEN_PIN_S})
+    tested = set().union(*pins)
+    if not tested:
+        return pl
+    use = []
+    for (a, b), pinned in zip(pl.spans, pins, strict=True):
+        opens = {i for i in range(4) if np.any(fit[a:b] & (u[a:b, i] > 0.0))}
+        use.append(bool(pinned) or bool(opens - tested))
+    left = [n for n, keep in zip(pl.names, use, strict=True) if not keep]
+    if left:
+        by = ", ".join(n for n, keep in zip(pl.names, use, strict=True) if keep)
+        notes.append(f"valves: C, b, the PWM curves, the valve timing and D_a, D_b from {by}, "
+                     f"whose valve tests hold every valve the logs open fully open for "
+                     f"{FULL_OPEN_PIN_S:g} s or more; the partial openings of "
+                     f"{', '.join(left)} are left out of that fit")
+        keep = [j for j, k in enumerate(use) if k]
+        return pool([pl.parts[j] for j in keep], [pl.names[j] for j in keep])
+    return pl
+
+
+def _friction(data: Dataset, fit: np.ndarray, mass: float, partial: bool,
+              notes: list[str]) -> FrictionIdentifier | PriorFriction:
+    """The friction fit; for a protocol run cut short on which it cannot run, the prior
+    (:mod:`.friction_prior`), noted. Any other log that cannot support it is bad input."""
+    try:
+        return FrictionIdentifier(mass=mass).fit(data, fit)
+    except IdentificationError as exc:
+        if not partial:
+            raise
+        prior = PriorFriction(data.rig, data.n, exc.message)
+        notes.append(f"friction: not identifiable from these logs ({exc.message}); F_C in "
+                     f"[{prior.F_C_range_[0]:.3g}, {prior.F_C_range_[1]:.3g}] N, b_v in "
+                     f"[{prior.b_v_range_[0]:.3g}, {prior.b_v_range_[1]:.3g}] N s/m and F_n in "
+                     f"[{prior.F_n_range_[0]:.3g}, {prior.F_n_range_[1]:.3g}] N are a prior "
+                     f"from the rig's geometry and supply; the cross-check narrows b_v and F_n "
+                     f"where the log rules their ends out")
+        return prior
+
+
+#: Two logs disagree on a friction coefficient when their estimates lie this many combined
+#: standard errors apart ...
+DISAGREE_SIGMAS = 5.0
+#: ... and differ by this fraction of the smaller one.
+DISAGREE_FRACTION = 0.05
+
+
+def friction_disagreements(pl: Pool, fit: np.ndarray, mass: float) -> list[str]:
+    """Notes for pooled logs whose own friction fits disagree (the rig changed between them).
+
+    Each pooled log that supports a friction fit of its own is fitted alone; two logs whose
+    F_C or b_v lie more than :data:`DISAGREE_SIGMAS` combined standard errors and
+    :data:`DISAGREE_FRACTION` apart show two states of the rig (a seal change, a new load),
+    which the pooled fit blends.
+
+    Parameters
+    ----------
+    pl : Pool
+        The pooled logs.
+    fit : ndarray of bool
+        The pooled fit mask.
+    mass : float
+        The moving mass of the fits' inertial term [kg].
+
+    Returns
+    -------
+    list of str
+        One note per coefficient on which some pair disagrees (empty when they agree).
+    """
+    own: list[tuple[str, FrictionIdentifier]] = []
+    for name, (a, b) in zip(pl.names, pl.spans, strict=True):
+        mask = np.zeros_like(fit)
+        mask[a:b] = fit[a:b]
+        try:
+            own.append((name, FrictionIdentifier(mass=mass).fit(pl.data, mask)))
+        except IdentificationError:
+            continue  # too little motion in this log for a fit of its own
+    notes = []
+    for key, unit, attr in (("F_C", "N", "F_C_"), ("b_v", "N s/m", "b_v_")):
+        worst = None
+        for i in range(len(own)):
+            for j in range(i + 1, len(own)):
+                (na, fa), (nb, fb) = own[i], own[j]
+                va, vb = getattr(fa, attr), getattr(fb, attr)
+                sd = math.hypot(fa.std_[key], fb.std_[key])
+                gap = abs(va - vb)
+                if gap > DISAGREE_SIGMAS * sd and gap > DISAGREE_FRACTION * min(abs(va), abs(vb)):
+                    z = gap / sd if sd > 0 else math.inf
+                    if worst is None or z > worst[0]:
+                        worst = (z, na, va, nb, vb)
+        if worst is not None:
+            z, na, va, nb, vb = worst
+            notes.append(f"friction: the logs disagree on {key}: {va:.4g} {unit} from {na}, "
+                         f"{vb:.4g} {unit} from {nb} ({z:.0f} standard errors apart): the rig "
+                         f"changed between them (a seal, a load, the supply?), and the model "
+                         f"blends the two; identify the logs of the rig as it is now")
+    return notes
+
+
+def _prior_theta(theta: ThetaBounds, prior: PriorFriction) -> ThetaBounds:
+    """θ2..θ4 from the friction prior (F_n, b_v, and A_f over the Coulomb range up to the
+    stiction prior)."""
+    lo, hi = theta.lo.copy(), theta.hi.copy()
+    lo[1], hi[1] = prior.F_n_range_
+    lo[2], hi[2] = prior.b_v_range_
+    lo[3], hi[3] = prior.F_C_range_[0], STICTION_PRIOR_MAX * prior.F_C_range_[1]
+    basis = list(theta.basis)
+    basis[1] = basis[2] = basis[3] = prior.basis_
+    return dataclasses.replace(theta, lo=lo, hi=hi, basis=tuple(basis))
+
+
+def _from(names: Sequence[str]) -> str:
+    """`` (from a.mcap, b.mcap)`` for a basis, or "" when no log is named."""
+    return f" (from {', '.join(names)})" if names else ""
+
+
+class _Sources:
+    """Which of several pooled logs each fit drew on, for the bases (one log: not used)."""
+
+    def __init__(self, pl: Pool, vpl: Pool, vfit: np.ndarray, valves: ValveIdentifier,
+                 friction: FrictionIdentifier | PriorFriction) -> None:
+        self.pool = pl
+        self.valve = [vpl.names_where(vfit & (vpl.data.u[:, i] > 0.0)) for i in range(4)]
+        self.friction = ("" if isinstance(friction, PriorFriction)
+                         else _from(pl.names_where(friction.sliding_)))
+        self.chamber = []
+        for ch in range(2):
+            if valves.D_closed_[ch]:
+                shut = vfit & np.all(vpl.data.u[:, 2 * ch:2 * ch + 2] <= 0.0, axis=1)
+                used = tuple(n for n, (a, b) in zip(vpl.names, vpl.spans, strict=True)
+                             if _longest_run(shut[a:b]) > valves.window_)
+            else:
+                used = vpl.names_where(vfit)
+            self.chamber.append(_from(used))
+
+    def theta(self, theta: ThetaBounds) -> ThetaBounds:
+        """θ's bases with the logs behind θ2..θ6 (θ1's, the mass basis, names its own)."""
+        b = list(theta.basis)
+        for i in (1, 2, 3):
+            b[i] += self.friction
+        b[4] += self.chamber[0]
+        b[5] += self.chamber[1]
+        return dataclasses.replace(theta, basis=tuple(b))
+
+
+def _coverage_notes(covs: Sequence[Coverage | None], pl: Pool,
+                    valves: ValveIdentifier, friction: FrictionIdentifier | PriorFriction,
+                    M_est: MassIdentifier | LagMassIdentifier | None, M_basis: str,
+                    sources: _Sources | None) -> list[str]:
+    """For each protocol run cut short: what its missing segments leave each fit resting on."""
+    out: list[str] = []
+    for cov in covs:
+        if cov is None or not cov.partial:
+            continue
+        if cov.lacks("constant_speed"):
+            if isinstance(friction, PriorFriction):
+                rest = "friction is the prior"
+            else:
+                rest = "friction from " + (", ".join(pl.names_where(friction.sliding_))
+                                           if len(pl.names) > 1 else
+                                           "the other motion of the log")
+            out.append(f"log {cov.name}: no constant-speed segments: {rest}")
+        if lacks_mass_segments(cov):
+            kinds = "acceleration" if cov.experiment == "identification" else "burst"
+            if M_est is None or "prior" in M_basis:
+                rest = ("the mass is the prior" if "given" not in M_basis
+                        else "the mass is the one given (--mass)")
+            elif isinstance(M_est, LagMassIdentifier):
+                rest = "the mass from the other logs sampled fast enough"
+            else:
+                rest = (f"the mass from the integrated motion equation of the "
+                        f"{pl.data.Ts * 1e3:g} ms samples")
+            out.append(f"log {cov.name}: no {kinds} segments: {rest}")
+        if cov.untested:
+            for v in cov.untested:
+                i = VALVES.index(v)
+                if getattr(valves, "unopened_", np.zeros(4, bool))[i]:
+                    rest = "its C and b are a prior"
+                elif sources is not None and sources.valve[i]:
+                    rest = f"its C and b from {', '.join(sources.valve[i])}"
+                else:
+                    rest = "its C and b from its other openings in the log"
+                out.append(f"log {cov.name}: no valve tests of {v}: {rest}")
+    return out
 
 
 #: Slow sliding samples (2-20 mm/s) below which the Coulomb level is poorly separated from the
@@ -360,40 +701,57 @@ class Ranges:
     unsupported: frozenset[str]
 
 
-def _stiction_range(log: Dataset, friction: FrictionIdentifier, F_C_range: tuple[float, float],
-                    theta: ThetaBounds, notes: list[str]) -> tuple[float, tuple[float, float], str]:
+def _stiction_range(logs: Dataset | Sequence[Dataset], friction: FrictionIdentifier,
+                    F_C_range: tuple[float, float], theta: ThetaBounds, notes: list[str],
+                    names: Sequence[str] = ()) -> tuple[float, tuple[float, float], str]:
     """F_S nominal, range and basis: stick and break-away events bound F_S from both sides
-    (:mod:`.stiction`); where the log has none, a prior (F_C .. STICTION_PRIOR_MAX F_C)."""
+    (:mod:`.stiction`); where the log has none, a prior (F_C .. STICTION_PRIOR_MAX F_C).
+
+    With several logs (``names`` theirs) each is read at its own sampling period, and the
+    highest lower bound and the lowest upper bound are kept, each naming its log.
+    """
+    many = not isinstance(logs, Dataset)
+    datasets = list(logs) if many else [logs]
     F_n = float(theta.nominal[1])
     F_n_half = 0.5 * float(theta.hi[1] - theta.lo[1])
-    try:
-        sb = stiction_bounds(log, F_n, F_n_half, b_v_max=float(theta.hi[2]),
-                             m_max=float(theta.hi[0]))
-    except (ValueError, np.linalg.LinAlgError) as exc:  # too little data for the events
-        sb = None
-        notes.append(f"friction: no stick or break-away events could be read ({exc})")
+    found: list[tuple[str, StictionBounds]] = []
+    for j, log in enumerate(datasets):
+        where = f" in {names[j]}" if many else ""
+        try:
+            found.append((where, stiction_bounds(log, F_n, F_n_half,
+                                                 b_v_max=float(theta.hi[2]),
+                                                 m_max=float(theta.hi[0]))))
+        except (ValueError, np.linalg.LinAlgError) as exc:  # too little data for the events
+            notes.append(f"friction: no stick or break-away events could be read{where} "
+                         f"({exc})")
+    lows = [(w, b) for w, b in found if b.lo is not None]
+    highs = [(w, b) for w, b in found if b.hi is not None and np.isfinite(b.hi)]
+    lo_w, sb_lo = max(lows, key=lambda wb: wb[1].lo) if lows else ("", None)
+    hi_w, sb_hi = min(highs, key=lambda wb: wb[1].hi) if highs else ("", None)
+    sb = found[0][1] if found and not many else None
     lo = F_C_range[0]
     hi = STICTION_PRIOR_MAX * F_C_range[1]
     parts = []
-    if sb is not None and sb.lo is not None and sb.lo > lo:
-        lo = float(sb.lo)
-        e = sb.lo_event
-        parts.append(f"at rest under {abs(e.F):.4g} N at t = {e.t:.3f} s" if e else
-                     f"at rest under {lo:.4g} N")
-    if sb is not None and sb.hi is not None and np.isfinite(sb.hi):
-        e = sb.hi_event
-        parts.append(f"broke away at {abs(e.F):.4g} N at t = {e.t:.3f} s" if e else
-                     f"broke away below {sb.hi:.4g} N")
-        if sb.hi < hi:
-            hi = float(sb.hi)
+    if sb_lo is not None and sb_lo.lo > lo:
+        lo = float(sb_lo.lo)
+        e = sb_lo.lo_event
+        parts.append((f"at rest under {abs(e.F):.4g} N at t = {e.t:.3f} s" if e else
+                      f"at rest under {lo:.4g} N") + lo_w)
+    if sb_hi is not None:
+        e = sb_hi.hi_event
+        parts.append((f"broke away at {abs(e.F):.4g} N at t = {e.t:.3f} s" if e else
+                      f"broke away below {sb_hi.hi:.4g} N") + hi_w)
+        if sb_hi.hi < hi:
+            hi = float(sb_hi.hi)
             kind = "data bound"
         else:
             kind = "prior"
             parts.append(f"the prior F_S <= {STICTION_PRIOR_MAX:g} F_C_max = {hi:.4g} N is "
-                         f"tighter than the break-aways ({sb.hi:.4g} N)")
+                         f"tighter than the break-aways ({sb_hi.hi:.4g} N)")
     else:
         kind = "prior"
-        notes.append(f"friction: the log shows no break-away from rest away from the end "
+        notes.append(f"friction: the {'logs show' if many else 'log shows'} no break-away "
+                     f"from rest away from the end "
                      f"stops, so nothing bounds the stiction force from above; F_S <= "
                      f"{STICTION_PRIOR_MAX:g} F_C_max = {hi:.4g} N is a prior (cylinder seals "
                      f"break away at 1.1-2 times their sliding friction)")
@@ -405,20 +763,55 @@ def _stiction_range(log: Dataset, friction: FrictionIdentifier, F_C_range: tuple
     if not friction.stiction_resolved_:  # the sliding samples do not show the peak
         nominal = 0.5 * (lo + hi)
     detail = "; ".join(parts) if parts else "no rest or break-away events"
-    basis = (f"{kind}: {detail}" + (f"; {sb.basis}" if sb is not None else "")
+    if many:  # each log's events and noise
+        sb_text = "; ".join(f"{w.strip()}: {b.basis}" for w, b in found)
+    else:
+        sb_text = sb.basis if sb is not None else ""
+    basis = (f"{kind}: {detail}" + (f"; {sb_text}" if sb_text else "")
              + ("" if kind == "data bound" else f"; F_S <= {STICTION_PRIOR_MAX:g} F_C (prior)"))
     return nominal, (lo, hi), basis
 
 
-def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: FrictionIdentifier,
-           mass: float, mass_range: tuple[float, float], mass_basis: str, theta: ThetaBounds,
-           validation: Validation, notes: list[str], period: float
-           ) -> tuple[ModelConfig, Ranges]:
+#: Range of a valve's conductance that no log opens, as a factor either side of the geometric
+#: mean of the conductances the logs do identify (the valves of one rig are mostly of one
+#: type): a prior.
+UNOPENED_C_FACTOR = 4.0
+
+
+def _model(data: Dataset, logs: Dataset | Sequence[Dataset], valves: ValveIdentifier,
+           friction: FrictionIdentifier | PriorFriction, mass: float,
+           mass_range: tuple[float, float], mass_basis: str, theta: ThetaBounds,
+           validation: Validation, notes: list[str], period: float,
+           sources: _Sources | None = None) -> tuple[ModelConfig, Ranges]:
+    """model.yaml's document and the ranges' bases. ``logs``: the log, or every log, at its
+    own sampling period; ``sources``: which logs each fit drew on (several logs only)."""
+    datasets = [logs] if isinstance(logs, Dataset) else list(logs)
+    names = display_names([d.path for d in datasets])
+    log = datasets[0]
     vdict = {}
     basis: dict[str, str] = {}
     unsupported: set[str] = set()
+    unopened = getattr(valves, "unopened_", np.zeros(4, dtype=bool))
+    opened_C = valves.C_[~unopened] if np.any(~unopened) else valves.C_
+    C_ref = float(np.exp(np.mean(np.log(opened_C))))
     for i, name in enumerate(VALVES):
         sw = valves.switching(period, i)
+        if unopened[i]:
+            # never commanded open in any log: C and b are a prior, checked against the logs
+            c_lo, c_hi = C_ref / UNOPENED_C_FACTOR, min(C_ref * UNOPENED_C_FACTOR, 1e-6)
+            basis[f"valves.{name}.C"] = (
+                f"prior: never commanded open in the logs; within a factor "
+                f"{UNOPENED_C_FACTOR:g} of the geometric mean {C_ref:.4g} m^3/(s Pa) of the "
+                f"conductances the logs identify")
+            basis[f"valves.{name}.b"] = "prior: never commanded open in the logs; 0-0.95"
+            unsupported |= {f"valves.{name}.C", f"valves.{name}.b"}
+            vdict[name] = {"C": C_ref, "b": float(np.clip(valves.b_[i], 0.0, 0.95)),
+                           "C_min": c_lo, "C_max": c_hi, "b_min": 0.0, "b_max": 0.95,
+                           "delay_on": sw["delay_on"], "delay_off": sw["delay_off"],
+                           "min_pulse": sw["min_pulse"]}
+            v_duty, v_ratio = _curve_points(valves.knots_, valves.curves_[i])
+            vdict[name]["pwm"] = {"duty": v_duty, "ratio": v_ratio}
+            continue
         c_lo, c_hi = _range(valves.C_[i], valves.C_std_[i], 0.03, 1e-12, 1e-6)
         c_basis = f"statistics: ±3.29 s.e. ({valves.C_std_[i]:.2g}), at least ±3 %"
         pinned = valves.full_open_s_[i] >= FULL_OPEN_PIN_S
@@ -458,6 +851,9 @@ def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: Frict
             c_lo, c_hi = min(c_lo, 0.5 * valves.C_[i]), min(max(c_hi, 2.0 * valves.C_[i]), 1e-6)
             c_basis = "structural: b not identifiable, so C to a factor 2"
             unsupported.add(f"valves.{name}.C")
+        if sources is not None:
+            c_basis += _from(sources.valve[i])
+            b_basis += _from(sources.valve[i])
         basis[f"valves.{name}.C"] = c_basis
         basis[f"valves.{name}.b"] = b_basis
         vdict[name] = {"C": float(valves.C_[i]), "b": float(valves.b_[i]), "C_min": c_lo,
@@ -468,30 +864,46 @@ def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: Frict
         vdict[name]["pwm"] = {"duty": v_duty, "ratio": v_ratio}
     f = friction
     sd = f.std_
-    F_C_range = _range(f.F_C_, sd["F_C"], 0.1)
-    F_S, F_S_range, basis["friction.F_S"] = _stiction_range(log, f, F_C_range, theta, notes)
+    prior = isinstance(f, PriorFriction)
+    F_C_range = f.F_C_range_ if prior else _range(f.F_C_, sd["F_C"], 0.1)
+    b_v_range = f.b_v_range_ if prior else _range(f.b_v_, sd["b_v"], 0.05)
+    F_S, F_S_range, basis["friction.F_S"] = _stiction_range(
+        log if len(datasets) == 1 else datasets, f, F_C_range, theta, notes, names)
     unsupported |= {"friction.F_S", "friction.v_s", "friction.alpha"}
-    basis["friction.F_C"] = f"statistics: ±3.29 s.e. ({sd['F_C']:.3g} N), at least ±10 %"
-    basis["friction.b_v"] = f"statistics: ±3.29 s.e. ({sd['b_v']:.3g} N s/m), at least ±5 %"
+    fsrc = sources.friction if sources is not None else ""
+    if prior:
+        basis["friction.F_C"] = basis["friction.b_v"] = f.basis_
+        # b_v and F_n are replayed against the log; the Coulomb level is not: on a log whose
+        # piston hardly moves the corners cannot tell it from the viscous term, and halving its
+        # range toward the prior's geometric mean (88 N) cut off the truth (50 N) on
+        # data/run.mcap cut before its ramps
+        unsupported |= {"friction.b_v", "disturbance.F_n"}
+    else:
+        basis["friction.F_C"] = (f"statistics: ±3.29 s.e. ({sd['F_C']:.3g} N), at least ±10 %"
+                                 + fsrc)
+        basis["friction.b_v"] = (f"statistics: ±3.29 s.e. ({sd['b_v']:.3g} N s/m), at least "
+                                 f"±5 %" + fsrc)
     basis["friction.v_s"] = (f"prior {V_S_PRIOR[0] * 1e3:g}-{V_S_PRIOR[1] * 1e3:g} mm/s "
                              "joined with the fit's ±3.29 s.e. (at least ±50 %): weakly "
-                             "identified")
+                             "identified" + fsrc)
     basis["friction.alpha"] = (f"prior {ALPHA_PRIOR[0]:g}-{ALPHA_PRIOR[1]:g} joined with the "
-                               "fit's ±3.29 s.e. (at least ±50 %): weakly identified")
+                               "fit's ±3.29 s.e. (at least ±50 %): weakly identified" + fsrc)
     basis["mass"] = mass_basis
     if "prior" in mass_basis:
         unsupported.add("mass")
     for key, i in (("disturbance.F_n", 1), ("disturbance.D_a", 4), ("disturbance.D_b", 5)):
-        basis[key] = "statistics: " + theta.basis[i]
+        basis[key] = ("" if prior and i == 1 else "statistics: ") + theta.basis[i]
     for ch, key in enumerate(("disturbance.D_a", "disturbance.D_b")):
         if valves.D_closed_[ch] is False:
             unsupported.add(key)
             basis[key] = ("weakly identified: the chamber's valves are never all shut, "
                           "widened to cover zero")
     duty, ratio = _curve_points(valves.knots_, valves.curve_)
+    src = [{"log": d.path, "sha256": d.sha256, "duration_s": d.duration} for d in datasets]
     data_dict = {
         "schema": MODEL_SCHEMA,
-        "source": {"log": data.path, "sha256": data.sha256, "duration_s": data.duration},
+        # one log: the mapping outside readers know; several: one mapping per log
+        "source": src[0] if len(src) == 1 else src,
         "rig": data.rig.model_dump(),
         "valves": vdict,
         "pwm": {"duty": duty, "ratio": ratio},
@@ -503,7 +915,7 @@ def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: Frict
                 "F_C": list(F_C_range),
                 "v_s": _hull(_range(f.v_s_, sd["v_s"], 0.5, 1e-4, 1.0), V_S_PRIOR),
                 "alpha": _hull(_range(f.alpha_, sd["alpha"], 0.5, 0.3, 10.0), ALPHA_PRIOR),
-                "b_v": list(_range(f.b_v_, sd["b_v"], 0.05)),
+                "b_v": list(b_v_range),
             },
         },
         "mass": float(mass),
@@ -515,7 +927,7 @@ def _model(data: Dataset, log: Dataset, valves: ValveIdentifier, friction: Frict
         "fit": {"nrmse_x": validation.nrmse["x"], "nrmse_p_a": validation.nrmse["p_a"],
                 "nrmse_p_b": validation.nrmse["p_b"]},
         "leak": {"C": min(valves.leak_C_, 1e-7)},
-        "sensors": _noise_levels(log),
+        "sensors": _noise_levels(datasets),
         "basis": basis,
         "notes": notes,
     }
@@ -530,14 +942,21 @@ def _curve_points(knots: np.ndarray, curve: np.ndarray) -> tuple[list[float], li
     return duty, ratio
 
 
-def _noise_levels(data: Dataset) -> dict[str, float]:
+def _noise_levels(data: Dataset | Sequence[Dataset]) -> dict[str, float]:
     """Sensor noise [m, Pa] from third differences where the signal is smooth at the sample
     scale (:func:`~pneutune.identify.stiction.position_noise_std`: the piston at rest;
     :func:`~pneutune.identify.stiction.force_noise_std`: the chambers with their valves shut, or the
     supply sensor). A smoothing residual would count the PWM ripple of a closed-loop log as
-    noise (10 times the truth, measured)."""
-    r = data.rig
-    sigma_F, _ = force_noise_std(data)
-    p_noise = sigma_F / float(np.hypot(r.A_a, r.A_b))
-    return {"x_noise": float(min(position_noise_std(data.x), 1e-3)),
+    noise (10 times the truth, measured).
+
+    With several logs, the smallest level any log shows: what a log's estimate fails to
+    separate from the signal (ripple, motion) only adds to it."""
+    datasets = [data] if isinstance(data, Dataset) else list(data)
+    x_noise, p_noise = np.inf, np.inf
+    for d in datasets:
+        r = d.rig
+        sigma_F, _ = force_noise_std(d)
+        p_noise = min(p_noise, sigma_F / float(np.hypot(r.A_a, r.A_b)))
+        x_noise = min(x_noise, position_noise_std(d.x))
+    return {"x_noise": float(min(x_noise, 1e-3)),
             "p_noise": float(min(p_noise, 1e5))}

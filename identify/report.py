@@ -136,10 +136,15 @@ def format_summary(r: IdentifyResult) -> str:
     rows = summary_rows(r)
     w0 = max(len(a) for a, _, _ in rows)
     w1 = max(len(b) for _, b, _ in rows)
-    lines = [f"identify {r.data.path}: {r.data.duration:.1f} s, {r.data.n} samples"]
-    if r.log is not None and r.log.n != r.data.n:
-        lines[0] += (f" at the {r.data.Ts * 1e3:g} ms control instants ({r.log.n} logged every "
-                     f"{r.log.Ts * 1e3:g} ms; the mass uses them all)")
+    if len(r.logs) > 1:
+        lines = [f"identify {len(r.logs)} logs of one rig, one model: " + ", ".join(
+            f"{name} ({d.duration:.1f} s every {d.Ts * 1e3:g} ms)"
+            for name, d in zip(r.names, r.logs, strict=True))]
+    else:
+        lines = [f"identify {r.data.path}: {r.data.duration:.1f} s, {r.data.n} samples"]
+        if r.log is not None and r.log.n != r.data.n:
+            lines[0] += (f" at the {r.data.Ts * 1e3:g} ms control instants ({r.log.n} logged "
+                         f"every {r.log.Ts * 1e3:g} ms; the mass uses them all)")
     lines += [f"  {a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows]
     lines += [f"  note: {n}" for n in r.notes]
     return "\n".join(lines)
@@ -175,6 +180,34 @@ def _ranges_section(r: IdentifyResult) -> list[str]:
     return [*out, ""]
 
 
+def _sources_section(r: IdentifyResult) -> list[str]:
+    """The log, or every log, the model came from."""
+    m = r.model
+    if len(m.sources) == 1:
+        src = m.sources[0]
+        return [f"Log: `{src.log}` (sha256 `{src.sha256[:16]}…`, {src.duration_s:.1f} s). "
+                f"Fitted on {100 * (1.0 - len(r.validation.t) / r.data.n):.0f} % of the "
+                f"samples; the end of every 10 s is held out for validation."]
+    pl = r.pool
+    pooled = set(pl.names) if pl is not None else set()
+    n_valid = int(pl.valid.sum()) if pl is not None else r.data.n
+    out = [f"Logs: one model fitted to {len(m.sources)} logs of one rig. The valve, friction "
+           "and validation fits pool their samples at the control instants (no fit window "
+           "straddles two logs), the mass's lag estimate pools the logs sampled fast enough, "
+           "the stiction bounds come from each log at its own sampling period; each basis "
+           f"below names the logs it came from. Fitted on "
+           f"{100 * (1.0 - len(r.validation.t) / max(n_valid, 1)):.0f} % of the pooled samples; "
+           "the end of every 10 s of each log is held out for validation.", "",
+           "| log | sha256 | duration | sampled every | pooled fits |",
+           "|---|---|---:|---:|---|"]
+    for src, d, name in zip(m.sources, r.logs, r.names, strict=True):
+        cut = (f"at the {r.data.Ts * 1e3:g} ms control instants" if name in pooled
+               else "left out (see the notes)")
+        out.append(f"| `{src.log}` | `{src.sha256[:16]}…` | {src.duration_s:.1f} s | "
+                   f"{d.Ts * 1e3:g} ms | {cut} |")
+    return out
+
+
 def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
     """Write report.md and its figures into ``folder``; returns the report's path."""
     out = Path(folder)
@@ -183,11 +216,8 @@ def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
             "friction": _plot_friction(r, out), "validation": _plot_validation(r, out)}
     m = r.model
     th = r.theta
-    lines = [
-        "# Identification report", "",
-        f"Log: `{m.source.log}` (sha256 `{m.source.sha256[:16]}…`, {m.source.duration_s:.1f} s). "
-        f"Fitted on {100 * (1.0 - len(r.validation.t) / r.data.n):.0f} % of the samples; the "
-        f"end of every 10 s is held out for validation.", "",
+    lines = ["# Identification report", "", *_sources_section(r), ""]
+    lines += [
         "## θ and its bounds (Assumption 1)", "",
         "| θ | nominal | min | max | width | basis |", "|---|---:|---:|---:|---:|---|",
     ]

@@ -122,6 +122,9 @@ class ValveIdentifier(Identifier):
         spoiled by what the averaged model lacks (valve delays at duty steps) weigh less.
     timing : bool
         Run the timing stage (module docstring); it is adopted only if it fits better.
+    allow_unopened : bool
+        Fit the other valves when one is never commanded open (a protocol run cut short),
+        instead of raising; that valve's C and b are then not identified (``unopened_``).
 
     Attributes
     ----------
@@ -161,13 +164,16 @@ class ValveIdentifier(Identifier):
     timing_rss_ : (float, float)
         Weighted residual sum of squares of the timing stage and of the averaged model
         [kPa^2].
+    unopened_ : ndarray of bool (4,)
+        Valves never commanded open in the fitted part (only with ``allow_unopened``).
     """
 
     def __init__(self, knots: np.ndarray | None = None, iterations: int = 3,
                  smooth: float = 1e-4, stride: int = 2, smooth_window: int = 9,
                  equilibrium_band: float = 3.0e3, loss: str = "linear",
                  f_scale: float = 1.0, varying_weight: float = 0.1,
-                 partial_weight: float = 0.3, timing: bool = True) -> None:
+                 partial_weight: float = 0.3, timing: bool = True,
+                 allow_unopened: bool = False) -> None:
         self.knots = knots
         self.iterations = iterations
         self.smooth = smooth
@@ -179,6 +185,7 @@ class ValveIdentifier(Identifier):
         self.varying_weight = varying_weight
         self.partial_weight = partial_weight
         self.timing = timing
+        self.allow_unopened = allow_unopened
 
     # -- per-sample terms ----------------------------------------------------------------------
     def _prepare(self, d: Dataset, mask: np.ndarray) -> None:
@@ -425,8 +432,18 @@ class ValveIdentifier(Identifier):
         mask = np.ones(data.n, dtype=bool) if mask is None else mask
         from pneutune.control.constants import VALVES
 
+        self.unopened_ = np.array([not np.any(data.u[mask, i] > _OPEN_DUTY) for i in range(4)])
+        if self.allow_unopened and self.unopened_.all():
+            raise IdentificationError(
+                data.path, "no valve is ever commanded open in the fitted part of the log: "
+                "there is nothing to identify the valves from")
         for i, name in enumerate(VALVES):
             u = data.u[mask, i]
+            if self.unopened_[i] and self.allow_unopened:
+                self.notes_ = [*getattr(self, "notes_", []),
+                               f"valve {name} is never commanded open: its C and b are not "
+                               f"identified"]
+                continue
             if not np.any(u > _OPEN_DUTY):
                 raise IdentificationError(
                     data.path, f"valve {name} is never commanded open in the fitted part of the "
@@ -534,6 +551,8 @@ class ValveIdentifier(Identifier):
         least-squares solution, the PWM curves of the timings found and the open fractions per
         sample, else None.
         """
+        from .valve_timing import TimingCost
+
         period = 1.0 / data.rig.pwm_hz
         wt = self._wt
         kw = {"bounds": (lo, hi), "x_scale": "jac", "method": "trf"}
@@ -549,28 +568,25 @@ class ValveIdentifier(Identifier):
 
         def cost_for(b: np.ndarray) -> Callable[[int, Sequence[Timing], float], float]:
             """Chamber cost for fixed b: C (and a free D) by linear least squares, since the
-            window sums are linear in them."""
+            window sums are linear in them (:class:`.valve_timing.TimingCost`: each valve
+            switched alone, its window sums kept, repeated candidates looked up)."""
             unit = self._flows(np.ones(4), b)
             L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
-
-            def cost(ch: int, tms: Sequence[Timing], phase: float) -> float:
-                ratios = frac(tms, phase)[:-1]
-                V, vol, sgn = ((self._Va, self._vol_a, -1.0) if ch == 0 else
-                               (self._Vb, self._vol_b, 1.0))
+            gains, targets, extra = [], [], []
+            for ch, (V, vol, sgn) in enumerate(((self._Va, self._vol_a, -1.0),
+                                                (self._Vb, self._vol_b, 1.0))):
                 g = self._Ts * self._nRT / V
-                cols = [self._window_sum(g * ratios[:, 2 * ch + j] * unit[2 * ch + j], ch)
-                        for j in range(2)]
                 known = vol + g * sgn * L
+                cols = []
                 if free_D[ch]:
-                    cols.append(self._window_sum(np.full_like(vol, self._Ts), ch))
-                else:
+                    cols.append(self._window_sum(np.full_like(vol, self._Ts), ch) * wt[ch])
+                else:  # theta is not refitted while a cost is in use
                     known = known + self._Ts * theta[9 + ch] * _D_UNIT
-                y = (self._dp[ch] - self._window_sum(known, ch)) * wt[ch]
-                A = np.column_stack(cols) * wt[ch][:, None]
-                coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-                return float(np.sum((A @ coef - y) ** 2)) / 1e6
-
-            return cost
+                gains.append(g)
+                targets.append((self._dp[ch] - self._window_sum(known, ch)) * wt[ch])
+                extra.append(cols)
+            return TimingCost(frac, list(zip(self._k0, self._k1, strict=True)), gains, unit,
+                              targets, wt, extra)
 
         t_lo, t_hi = timing_bounds(period)
 

@@ -46,7 +46,7 @@ from pneutune.control.errors import ConfigError
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
-from .logcheck import check_log, logged_controller
+from .logcheck import check_logs, logged_controller
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .report import Comparison, compare, write_report
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
@@ -343,7 +343,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     behind = behind_paper(comp, best.number, settings)
     if behind is not None and notes is not None:
         notes(behind)
-    log_check = check_log(model_cfg, tuned, settings.seed, name)
+    log_check = check_logs(model_cfg, tuned, settings.seed, name)
     for line in log_check.warnings():
         if notes is not None:
             notes(line)
@@ -378,7 +378,7 @@ def _logged_trial(model: ModelConfig, model_path: str, settings: TuneSettings,
     trial (:func:`~pneutune.tune.logcheck.logged_controller`): a re-tune after a
     re-identification starts from the controller on the rig. None when the log names none, it
     is of another variant, or it is the paper's (trial 0) or the feasibility reference."""
-    cfg, source = logged_controller(model, model_path)
+    cfg, source = logged_controller(model, model_path, notes)
     if cfg is None:
         return None
     space = search_space(model, settings.objective.variant)

@@ -22,12 +22,20 @@ deploy both controllers (docs/tuning.md, "The log's own closed loop").
 Nothing is checked, and the report says why, when the log is not at the path model.yaml names,
 has changed since identify, is not a closed-loop run of a known scenario (an identification or
 commissioning run), or its controller file is gone or changed.
+
+A model fitted to several logs (model.yaml's ``source`` a list) is checked log by log
+(:func:`check_logs`): each closed-loop source log is replayed, the others are listed as not
+checked. The controller that ran (:func:`logged_controller`) is taken from the closed-loop
+logs; when several ran different controllers, the most recent log's (the file modified last,
+the later in ``source`` on a tie), and tune says so.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,7 +43,7 @@ import numpy as np
 
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
-from pneutune.control.contracts.model import ModelConfig
+from pneutune.control.contracts.model import ModelConfig, SourceInfo
 from pneutune.control.errors import PneutuneError
 from pneutune.control.logs.reader import RunLog, read_run_log
 from pneutune.control.sim.closed_loop import compute_metrics, simulate_scenario
@@ -157,18 +165,52 @@ def _find(log: str, model_path: str | None) -> Path | None:
     return next((p for p in cands if p.is_file()), None)
 
 
-def _open_log(model: ModelConfig, model_path: str | None) -> tuple[RunLog | None, str]:
-    """The log model.yaml was identified from, or None and why not."""
-    name = model.source.log
+class LogChecks(tuple[LogCheck, ...]):
+    """The check of every log a model came from (:func:`check_logs`), one :class:`LogCheck`
+    each. With one log it reads exactly as that log's check."""
+
+    def warnings(self) -> list[str]:
+        """Every log's ``warning:`` lines."""
+        return [w for c in self for w in c.warnings()]
+
+    def lines(self) -> list[str]:
+        """The report.md section: the one log's, or a subsection per log."""
+        if len(self) == 1:
+            return self[0].lines()
+        out = ["## The logs' own closed loops", "",
+               f"The model came from {len(self)} logs; each closed-loop one is replayed on "
+               "the model's nominal plant.", ""]
+        for c in self:
+            body = c.lines()[2:]  # without the one-log heading
+            out += [f"### `{c.log}`", "", *body]
+        return out
+
+    def as_dict(self) -> dict[str, object]:
+        """Plain data for ``tune --json``: the one log's, or ``{"logs": [...], "warnings":
+        [...]}``."""
+        if len(self) == 1:
+            return self[0].as_dict()
+        return {"logs": [c.as_dict() for c in self], "warnings": self.warnings()}
+
+
+def _open_source(src: SourceInfo, model_path: str | None) -> tuple[RunLog | None, str]:
+    """A log model.yaml was identified from, or None and why not."""
+    name = src.log
     path = _find(name, model_path)
     if path is None:
         return None, f"the log `{name}` is not at that path"
-    if sha256_file(path) != model.source.sha256:
+    if sha256_file(path) != src.sha256:
         return None, f"`{name}` has changed since identify read it (sha256)"
     try:
         return read_run_log(path), ""
     except PneutuneError as exc:  # it was read by identify; a defect here is worth a line
         return None, f"`{name}` cannot be read: {exc}"
+
+
+def _modified(src: SourceInfo, model_path: str | None) -> float:
+    """The modification time of a source log's file [s since the epoch] (-inf if absent)."""
+    path = _find(src.log, model_path)
+    return path.stat().st_mtime if path is not None else -math.inf
 
 
 def _run_controller(log: RunLog) -> tuple[ControllerConfig | None, str]:
@@ -187,20 +229,10 @@ def _run_controller(log: RunLog) -> tuple[ControllerConfig | None, str]:
         return None, f"`{ctrl_name}` does not load: {exc}"
 
 
-def logged_controller(model: ModelConfig,
-                      model_path: str | None = None) -> tuple[ControllerConfig | None, str]:
-    """The controller that ran in ``model``'s log (a closed-loop run that ``deploy --log``
-    wrote), as :func:`check_log` finds it; ``(None, why not)`` otherwise.
-
-    ``tune`` enqueues its parameters as a trial, so that a re-tune after a re-identification
-    starts from the controller on the rig.
-
-    Returns
-    -------
-    (ControllerConfig or None, str)
-        The controller and its file name, or None and the reason.
-    """
-    log, why = _open_log(model, model_path)
+def _source_controller(src: SourceInfo, model_path: str | None
+                       ) -> tuple[ControllerConfig | None, str]:
+    """The controller that ran in one source log, or None and why not."""
+    log, why = _open_source(src, model_path)
     if log is None:
         return None, why
     if "/control/state" not in log.topics:
@@ -209,8 +241,72 @@ def logged_controller(model: ModelConfig,
     return (cfg, log.run.get("controller", "")) if cfg is not None else (None, why)
 
 
+def logged_controller(model: ModelConfig, model_path: str | None = None,
+                      notes: Callable[[str], None] | None = None,
+                      ) -> tuple[ControllerConfig | None, str]:
+    """The controller that ran in ``model``'s log (a closed-loop run that ``deploy --log``
+    wrote), as :func:`check_log` finds it; ``(None, why not)`` otherwise.
+
+    ``tune`` enqueues its parameters as a trial, so that a re-tune after a re-identification
+    starts from the controller on the rig. For a model fitted to several logs, every source log
+    is looked at: the controller comes from the closed-loop ones, and when they ran different
+    controllers, from the most recent log (its file modified last; the later in ``source`` on a
+    tie), which ``notes`` (default: stderr) is told.
+
+    Parameters
+    ----------
+    model : ModelConfig
+        The identified model (its ``source`` names the logs).
+    model_path : str, optional
+        Where model.yaml was read from (a relative log path is also tried beside it).
+    notes : callable, optional
+        Receives the line saying which of several different logged controllers was taken
+        (default: written to stderr).
+
+    Returns
+    -------
+    (ControllerConfig or None, str)
+        The controller and its file name, or None and the reason.
+    """
+    sources = model.sources
+    if len(sources) == 1:
+        return _source_controller(sources[0], model_path)
+    found: list[tuple[float, int, ControllerConfig, str, str]] = []
+    why: list[str] = []
+    for k, src in enumerate(sources):
+        cfg, what = _source_controller(src, model_path)
+        if cfg is None:
+            why.append(f"`{src.log}`: {what}")
+        else:
+            found.append((_modified(src, model_path), k, cfg, what, src.log))
+    if not found:
+        return None, "; ".join(why)
+    _, _, cfg, ctrl_name, log_name = max(found, key=lambda f: (f[0], f[1]))
+    if any(f[2] != cfg for f in found):
+        ran = ", ".join(f"`{f[3]}` in `{f[4]}`" for f in found)
+        line = (f"the model's closed-loop logs ran different controllers ({ran}); the most "
+                f"recent log's, `{ctrl_name}` in `{log_name}`, is the logged controller")
+        if notes is not None:
+            notes(line)
+        else:
+            sys.stderr.write(line + "\n")
+    return cfg, ctrl_name
+
+
+def check_logs(model: ModelConfig, tuned: ControllerConfig, seed: int,
+               model_path: str | None = None) -> LogChecks:
+    """:func:`check_log` for every log ``model`` came from (one for a single-log model).
+
+    Returns
+    -------
+    LogChecks
+    """
+    return LogChecks(check_log(model, tuned, seed, model_path, source=src)
+                     for src in model.sources)
+
+
 def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
-              model_path: str | None = None) -> LogCheck:
+              model_path: str | None = None, source: SourceInfo | None = None) -> LogCheck:
     """Replay the controller of ``model``'s log on its nominal plant (module docstring).
 
     Parameters
@@ -223,13 +319,26 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
         tune's seed; the replays use noise seeds ``seed + NOISE_SEEDS``.
     model_path : str, optional
         Where model.yaml was read from (a relative log path is also tried beside it).
+    source : SourceInfo, optional
+        The log to check: one of ``model.sources``; default the model's only log
+        (:func:`check_logs` checks each of several).
 
     Returns
     -------
     LogCheck
+
+    Raises
+    ------
+    ValueError
+        ``source`` not given for a model of several logs.
     """
-    name = model.source.log
-    log, why = _open_log(model, model_path)
+    if source is None:
+        if len(model.sources) != 1:
+            raise ValueError(f"the model came from {len(model.sources)} logs: name the one "
+                             f"to check (source=...), or use check_logs")
+        source = model.sources[0]
+    name = source.log
+    log, why = _open_source(source, model_path)
     if log is None:
         return LogCheck(name, why)
     if "/control/state" not in log.topics or "/control/reference" not in log.topics:
@@ -278,4 +387,5 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
                     (measured.E_p_mm, measured.E_rms_mm), replay(logged), replay(tuned))
 
 
-__all__ = ["NOISE_SEEDS", "RATIO", "TUNED_RATIO", "LogCheck", "check_log", "logged_controller"]
+__all__ = ["NOISE_SEEDS", "RATIO", "TUNED_RATIO", "LogCheck", "LogChecks", "check_log",
+           "check_logs", "logged_controller"]

@@ -6,7 +6,10 @@ The contract's keys keep their names and meanings; pneutune adds (documented in 
   and the switching behaviour ``delay_on``, ``delay_off``, ``min_pulse`` it can simulate;
 * ``friction.ranges``: [lo, hi] per Stribeck parameter;
 * ``mass_range``, ``leak``, ``sensors`` (noise levels seen in the log), ``notes`` (what was not
-  identifiable and why).
+  identifiable and why);
+* ``source`` is the contract's mapping (log, sha256, duration_s) for a model identified from one
+  log, and a list of such mappings, one per log, for a model fitted to several logs of one rig
+  (``identify A.mcap B.mcap``); :attr:`ModelConfig.sources` reads either as a tuple.
 
 θ = [M, F_n, b_v, A_f, D_an, D_bn] (the paper's order) in kg, N, N s/m, N, Pa/s, Pa/s.
 """
@@ -51,11 +54,16 @@ def _check_range(name: str, lo: float, value: float, hi: float) -> None:
 
 
 class SourceInfo(_Strict):
-    """The log the model came from."""
+    """A log the model came from."""
 
     log: str = Field(description="Path of the run log as given to identify")
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the log file")
     duration_s: float = Field(ge=0.0, description="Duration of the log [s]")
+
+
+#: Added: the logs of a model fitted to several logs of one rig, one mapping per log (a model
+#: of one log keeps the single mapping, so a list has two or more).
+Sources = Annotated[tuple[SourceInfo, ...], Field(min_length=2), BeforeValidator(_to_tuple)]
 
 
 class ModelValve(_Strict):
@@ -184,7 +192,9 @@ class ModelConfig(_Strict):
                               populate_by_name=True)
 
     schema_: Literal["pneutune.model/1"] = Field(MODEL_SCHEMA, alias="schema")
-    source: SourceInfo
+    source: SourceInfo | Sources = Field(
+        description="The log the model came from; for a model fitted to several logs of one "
+        "rig, a list of two or more of them, one per log")
     rig: RigConfig
     valves: ModelValves
     pwm: PwmCurve
@@ -208,6 +218,11 @@ class ModelConfig(_Strict):
         if self.mass_range is not None:
             _check_range("mass", self.mass_range[0], self.mass, self.mass_range[1])
         return self
+
+    @property
+    def sources(self) -> tuple[SourceInfo, ...]:
+        """Every log the model came from, in order (one for a single-log ``source``)."""
+        return (self.source,) if isinstance(self.source, SourceInfo) else tuple(self.source)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data as written to model.yaml (lists, not tuples)."""
