@@ -1,7 +1,7 @@
 """An independent simulator of the servo-pneumatic rig, speaking ``pneutune.rig/1`` on a pipe.
 
     .venv/bin/python benchmarks/other_sim_driver.py [--plant PLANT.yaml] --scenario NAME --seed N
-        [--x0 X]
+        [--x0 X] [--sample-period S]
 
 A second simulator of the physics of the paper's Sec. 2 (Qian et al., 2014), written apart from
 pneutune's own, so that ``deploy --rig exec:`` -> ``identify`` -> ``tune`` can be checked against
@@ -42,13 +42,20 @@ State ``[x, v, p_a, p_b, z]``.
   (on or off) shorter than ``min_pulse`` does not move the armature: a short on-pulse does not
   open the valve, a short off-gap does not close it. (If ``min_pulse`` exceeds a delay, the
   movement starts ``min_pulse`` after the edge, to stay causal.)
-* Integration: fixed-step classic RK4, ``substeps`` per sample (default 40: 0.1 ms), the valve
-  openings evaluated exactly (piecewise linear) at every RK4 stage time.
+* Integration: fixed-step classic RK4, ``substeps`` per control period ``Ts`` (default 40: 0.1
+  ms), the valve openings evaluated exactly (piecewise linear) at every RK4 stage time.
+* Sampling: every ``Ts`` (the plant's control period) by default. ``--sample-period S``, which
+  must divide ``Ts`` into whole samples, samples and ticks (``A``) every S instead, with
+  ``ceil(substeps S / Ts)`` RK4 steps per sample, so the step is never longer than without it
+  (0.5 ms: 5 steps of 0.1 ms); the hello's ``Ts`` is then S and its rig block keeps the
+  plant's ``Ts``. The valves' PWM carrier does not depend on the sample period.
 * Sensors (``R``): ``x`` + N(0, x_noise), ``p_a``, ``p_b``, ``p_s`` + N(0, p_noise), one draw
   per sample (a repeated ``R`` in one sample returns the same values), seeded by ``--seed``; each
   channel's sample time is the sample's ``t``. ``p_s`` is constant.
 * Initial state: at rest, both chambers at ``p0``, ``z = 0``, at mid-stroke, except
-  ``square-0.5hz`` at x = 6 mm where its reference starts (``--x0`` overrides).
+  ``square-0.5hz`` at x = 6 mm where its reference starts (``--x0`` overrides). An experiment's
+  name (``identification``, ``commissioning``: what ``record`` puts in ``{scenario}``) is the
+  plain rig at mid-stroke.
 * ``T`` (truth): ``v, a, F_friction, F_ext, mdot_a, mdot_b`` at the current sample.
 
 Deliberate differences from a switch-model simulator
@@ -60,7 +67,7 @@ Deliberate differences from a switch-model simulator
 3. The ISO 6358 law is linearised for ``r > 0.999`` (a laminar region: the slope of
    ``phi`` is infinite at ``r = 1``, which an explicit integrator cannot resolve).
 4. A stiff spring-damper end stop, not an inelastic clamp.
-5. Fixed-step RK4 at 0.1 ms, not an event-driven or adaptive scheme.
+5. Fixed-step RK4 at 0.1 ms (or finer), not an event-driven or adaptive scheme.
 6. Optional seal leaks.
 
 The plant file (YAML; every key optional, unknown keys are an error, exit 2)
@@ -78,8 +85,9 @@ The plant file (YAML; every key optional, unknown keys are an error, exit 2)
     stops: {k: 2.0e7, c: 6000.0}                      # N/m, N s/m
     pwm_update: immediate         # or latched
     pwm_hz: 60.0
-    Ts: 0.004                     # sampling period [s]
-    substeps: 40                  # RK4 steps per sample
+    Ts: 0.004                     # control period [s]; the sampling period without
+                                  # --sample-period
+    substeps: 40                  # RK4 steps per Ts
 
 Scenarios: ``sine-0.5hz-heavy`` adds a 1.136 kg payload; ``disturbance-0.5hz`` applies
 ``F_ext`` = 30 N from 7.6 s, 80 N from 9.8 s, 0 from 11.9 s; any other name is the plain rig.
@@ -141,6 +149,53 @@ DEFAULTS: dict[str, Any] = {
 }
 
 _EPS_T = 1e-12  # time tolerance [s]
+_DIVIDES_RTOL = 1e-9  # how closely a sample period must divide Ts
+
+
+def divides(sample_period: float, Ts: float) -> bool:
+    """Whether ``sample_period`` divides ``Ts`` into a whole number of samples.
+
+    Parameters
+    ----------
+    sample_period : float
+        The sample period [s].
+    Ts : float
+        The control period [s].
+
+    Returns
+    -------
+    bool
+        True when ``sample_period`` is positive, finite, at most ``Ts`` and ``Ts`` is a whole
+        multiple of it (to a relative 1e-9).
+    """
+    if not (math.isfinite(sample_period) and 0.0 < sample_period <= Ts * (1.0 + _DIVIDES_RTOL)):
+        return False
+    k = round(Ts / sample_period)
+    return k >= 1 and abs(k * sample_period - Ts) <= _DIVIDES_RTOL * Ts
+
+
+def substeps_for(plant: dict[str, Any], sample_period: float | None) -> int:
+    """RK4 steps per sample: the plant's ``substeps`` per ``Ts``, scaled to the sample period.
+
+    Parameters
+    ----------
+    plant : dict
+        A complete plant (`load_plant_dict`).
+    sample_period : float or None
+        The sample period [s]; None samples at the plant's ``Ts``.
+
+    Returns
+    -------
+    int
+        ``substeps`` without a sample period, else ``ceil(substeps sample_period / Ts)`` (at
+        least 1), so that the step ``sample_period / n`` is never longer than ``Ts /
+        substeps``.
+    """
+    n = int(plant["substeps"])
+    if sample_period is None:
+        return n
+    ratio = n * float(sample_period) / float(plant["Ts"])
+    return max(1, math.ceil(ratio - 1e-9))
 
 
 class PlantError(ValueError):
@@ -442,13 +497,24 @@ class CylinderSim:
         Sensor-noise seed.
     x_start : float, optional
         Initial piston position [m]; default ``START_X`` of the scenario, else mid-stroke.
+    sample_period : float, optional
+        Sample (and tick) every this many seconds, dividing the plant's ``Ts``; default ``Ts``.
+
+    Raises
+    ------
+    PlantError
+        When ``sample_period`` does not divide the plant's ``Ts``.
     """
 
     def __init__(self, plant: dict[str, Any], scenario: str, seed: int,
-                 x_start: float | None = None) -> None:
+                 x_start: float | None = None, sample_period: float | None = None) -> None:
         self.plant = plant
-        self.Ts = float(plant["Ts"])
-        self.nsub = int(plant["substeps"])
+        self.control_Ts = float(plant["Ts"])
+        if sample_period is not None and not divides(float(sample_period), self.control_Ts):
+            raise PlantError(f"the sample period {sample_period!r} s must divide the plant's Ts "
+                             f"= {self.control_Ts!r} s into whole samples")
+        self.Ts = self.control_Ts if sample_period is None else float(sample_period)
+        self.nsub = substeps_for(plant, sample_period)
         self.mass = plant["mass"] + (PAYLOAD_HEAVY if scenario == "sine-0.5hz-heavy" else 0.0)
         self.disturbance = scenario == "disturbance-0.5hz"
         latched = plant["pwm_update"] == "latched"
@@ -464,7 +530,7 @@ class CylinderSim:
 
     @property
     def t(self) -> float:
-        """Time of the current sample [s]: ``k Ts``."""
+        """Time of the current sample [s]: ``k Ts`` (``Ts`` the sample period)."""
         return self.k * self.Ts
 
     def f_ext(self, t: float) -> float:
@@ -558,7 +624,7 @@ class CylinderSim:
             valve.close()
 
     def advance(self) -> float:
-        """Integrate one sampling period.
+        """Integrate one sample period.
 
         Returns
         -------
@@ -630,14 +696,15 @@ class CylinderSim:
         return (v, d[1], d[5], fext, d[6], d[7])
 
     def hello(self) -> dict[str, Any]:
-        """The hello: protocol, Ts and the rig block.
+        """The hello: protocol, the sample period ``Ts`` and the rig block (whose ``Ts`` is the
+        plant's control period).
 
         Returns
         -------
         dict
         """
         rig = {"A_a": A_A, "A_b": A_B, "x_min": X_MIN, "x_max": X_MAX, "V0a": V0A, "V0b": V0B,
-               "p0": P0, "p_s": P_S, "T0": T0, "n": N_POLY, "R": R_GAS, "Ts": self.Ts,
+               "p0": P0, "p_s": P_S, "T0": T0, "n": N_POLY, "R": R_GAS, "Ts": self.control_Ts,
                "pwm_hz": float(self.plant["pwm_hz"]), "pwm_update": self.plant["pwm_update"]}
         return {"protocol": PROTOCOL, "Ts": self.Ts, "rig": rig}
 
@@ -732,6 +799,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--x0", type=float, default=None,
                     help="initial piston position [m] (default: the scenario's, see START_X)")
+    ap.add_argument("--sample-period", type=float, default=None, metavar="S",
+                    help="sample and tick every S seconds, dividing the plant's Ts (default Ts); "
+                         "the hello's Ts is S, its rig block keeps the plant's Ts")
     args = ap.parse_args(argv)
     if args.x0 is not None and not X_MIN <= args.x0 <= X_MAX:
         print(f"other_sim_driver: --x0 must be in [{X_MIN}, {X_MAX}]", file=sys.stderr)
@@ -741,7 +811,11 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, yaml.YAMLError, PlantError) as exc:
         print(f"other_sim_driver: bad plant {args.plant}: {exc}", file=sys.stderr)
         return 2
-    sim = CylinderSim(plant, args.scenario, args.seed, args.x0)
+    try:
+        sim = CylinderSim(plant, args.scenario, args.seed, args.x0, args.sample_period)
+    except PlantError as exc:
+        print(f"other_sim_driver: --sample-period: {exc}", file=sys.stderr)
+        return 2
     try:
         return serve(sim, sys.stdin.buffer, sys.stdout.buffer)
     except BrokenPipeError:
