@@ -107,12 +107,16 @@ def test_a_closed_loop_log_leaves_no_parameter_further_from_the_truth(alone, com
     is negligible above the 20 mm/s the lag uses: equal to 1e-9 (measured 2e-11).
 
     Friction pools both logs' motion, so F_C and b_v move either way by the noise of one more
-    log. Measured: F_C +0.705 % -> +0.466 %, b_v -0.203 % -> -0.205 % (0.07 N s/m further);
-    with sine-0.75hz instead b_v -0.216 % (0.46 N s/m further), with square-0.5hz F_C +0.722 %
-    (0.009 N further). Each deploy log alone lies on the same side of the truth as the run, with
-    3-5 times its standard error, and no weighting of the logs moved b_v by more than 0.2 N s/m
-    (docs/identification.md, "Several logs"). Allowed: a quarter of the run's standard error
-    (F_C 0.061 N, b_v 0.95 N s/m) further than alone.
+    log. Measured on data/run.mcap (regenerated 2026-11-25): F_C +0.477 % -> +0.166 %, b_v
+    -0.109 % -> -0.097 %; with sine-0.75hz instead b_v -0.139 % (1.05 N s/m further), with
+    square-0.5hz F_C +0.502 % (0.013 N further). Each deploy log alone lies on the same side of
+    the truth as the run, with 3-5 times its standard error, and no weighting of the logs moved
+    b_v by more than 0.2 N s/m (docs/identification.md, "Several logs"). Allowed: a quarter of
+    the run's standard error (F_C 0.061 N, b_v 0.83 N s/m) further than alone.
+
+    The pooled standard errors are those of one fit to both logs' residuals, whose scale the
+    4 ms closed loop raises a little: at most 5 % above the run's alone (b_v 3.38 against 3.33
+    N s/m measured).
     """
     e1, e2 = _errors(alone.model), _errors(combined.model)
     se = {"friction.F_C": alone.friction.std_["F_C"] / PLANT.friction.F_C,
@@ -120,9 +124,8 @@ def test_a_closed_loop_log_leaves_no_parameter_further_from_the_truth(alone, com
     for key, err in e2.items():
         allowed = abs(e1[key]) + 0.25 * se.get(key, 0.0) + 1e-9
         assert abs(err) <= allowed, (key, err, e1[key])
-    # the pooled fit has more data: its standard errors are no larger
-    assert combined.friction.std_["b_v"] <= alone.friction.std_["b_v"]
-    assert combined.friction.std_["F_C"] <= alone.friction.std_["F_C"]
+    assert combined.friction.std_["b_v"] <= 1.05 * alone.friction.std_["b_v"]
+    assert combined.friction.std_["F_C"] <= 1.05 * alone.friction.std_["F_C"]
 
 
 def test_each_basis_names_the_logs_it_came_from(combined, deploy):
@@ -141,7 +144,7 @@ def test_source_lists_every_log_and_the_report_too(combined, deploy, tmp_path):
     srcs = combined.model.sources
     assert [Path(s.log).name for s in srcs] == ["run.mcap", deploy.name]
     assert [s.sha256 for s in srcs] == [sha256_file(RUN), sha256_file(deploy)]
-    assert srcs[0].duration_s == pytest.approx(144.0, abs=0.1)
+    assert srcs[0].duration_s == pytest.approx(147.0, abs=0.1)
     assert srcs[1].duration_s == pytest.approx(12.0, abs=0.01)
     data = combined.model.to_dict()
     assert isinstance(data["source"], list) and len(data["source"]) == 2
@@ -239,29 +242,39 @@ def test_a_run_cut_before_its_ramps_identifies_with_notes(cut, folder):
 
 
 def test_a_run_whose_piston_hardly_moves_falls_back_to_the_friction_prior(tmp_path):
-    """data/run.mcap cut at its first constant-speed segment, labels kept: its piston moves
-    only between the valve tests (78 samples faster than 2 mm/s), too little for the friction
-    fit, which for an unlabelled log is bad input (tests/test_identify_cli.py). A protocol run
-    cut short falls back to the stated prior instead: exit 0, F_C and b_v ranges from the rig
-    that hold the truth (20-390 N and, after the cross-check, 2175-3820 N s/m measured)."""
+    """data/run.mcap's valve tests alone, labels kept, the piston on an end stop throughout
+    (both chambers' tests from their preparations on; the approach onto the second stop cut
+    out, so the piston jumps between two samples): too little motion for the friction fit,
+    which for an unlabelled log is bad input (tests/test_identify_cli.py). A protocol run cut
+    short falls back to the stated prior instead: exit 0, F_C and b_v ranges from the rig
+    that hold the truth (20-390 N and, after the cross-check, 2175-3820 N s/m measured on the
+    run cut before its ramps)."""
     from pneutune.control.logs.reader import read_run_log
     from pneutune.control.logs.writer import RunLogWriter
 
     src = read_run_log(RUN)
     seg = src["/experiment/segment"]
+    at = {lab: float(t) for t, lab in zip(seg.index, seg["label"], strict=True)}
+    t0, a, b = at["prepare:a"], at["approach:b:x_min"], at["prepare:b"]
     t_end = float(seg.index[[k == "constant_speed" for k in seg["kind"]]][0])
+
+    def kept(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        keep = (t >= t0) & (t < t_end) & ~((t >= a) & (t < b))
+        return keep, np.where(t >= b, t - (b - a), t) - t0
+
     cut = tmp_path / "run-cut.mcap"
-    with RunLogWriter(cut, rig=src.rig, run=dict(src.run)) as w:
-        for t, (label, kind, params) in zip(seg.index, seg[["label", "kind", "params"]].values,
+    run = {**src.run, "status": "interrupted", "stopped_in": "hold:start_friction"}
+    with RunLogWriter(cut, rig=src.rig, run=run) as w:
+        keep, shifted = kept(seg.index.to_numpy())
+        for t, (label, kind, params) in zip(shifted[keep],
+                                            seg[["label", "kind", "params"]].values[keep],
                                             strict=True):
-            if t < t_end:
-                w.write("/experiment/segment", float(t), {"label": label, "kind": kind,
-                                                          "params": params})
+            w.write("/experiment/segment", float(t), {"label": label, "kind": kind,
+                                                      "params": params})
         for topic in ("/rig/sensors", "/rig/valves"):
             df = src[topic]
-            keep = df.index.to_numpy() < t_end
-            w.write_many(topic, df.index.to_numpy()[keep],
-                         {c: df[c].to_numpy()[keep] for c in df.columns})
+            keep, shifted = kept(df.index.to_numpy())
+            w.write_many(topic, shifted[keep], {c: df[c].to_numpy()[keep] for c in df.columns})
     out = tmp_path / "id"
     with pytest.raises(SystemExit) as exc:
         run_cli(identify_main, [str(cut), "--out", str(out)])
