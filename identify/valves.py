@@ -33,13 +33,15 @@ about 0.1 ms. The PWM curves then follow from the timings
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import cvxpy as cp
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
+from threadpoolctl import threadpool_limits
 
 from pneutune.control.physics.flow import signed_flow_array
 from pneutune.control.physics.pwm import effective_open_fraction
@@ -47,6 +49,11 @@ from pneutune.control.physics.pwm import effective_open_fraction
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
 from .valve_timing import OpenFractions, Timing, coordinate_search, phase_search, timing_bounds
+
+try:  # scipy's own step rules of jac='2-point' (private: without them, least_squares' default)
+    from scipy.optimize._numdiff import _adjust_scheme_to_bounds, _compute_absolute_step
+except ImportError:  # pragma: no cover - a scipy that moved them
+    _adjust_scheme_to_bounds = _compute_absolute_step = None
 
 #: Parameter scaling for the solver: C in 1e-9 m^3/(s Pa), leak in 1e-10, D in 1e3 Pa/s.
 _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
@@ -57,6 +64,25 @@ _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
 B_PRIOR, B_PRIOR_SD = 0.25, 0.1
 #: Duty below which a sample does not count as "the valve was commanded open".
 _OPEN_DUTY = 1e-6
+
+
+@contextlib.contextmanager
+def single_blas_thread() -> Iterator[None]:
+    """Run the block with the BLAS libraries on one thread (threadpoolctl); restore after.
+
+    The valve fit's linear algebra is on tall matrices of a dozen columns (the trust-region
+    SVD of the Jacobian, about 18k x 11 on an identification run): a few milliseconds on one
+    core. With a second BLAS thread on a shared 2-core machine, each call waited up to 90 ms
+    for a busy core, which made the valve fit take 9 s instead of 3 s. On data/run.mcap the
+    fit gives the same floats on one thread as on two (benchmarks/identify_speed.py). The
+    thread count is process-wide: other threads doing BLAS meanwhile run single-threaded too.
+
+    Yields
+    ------
+    None
+    """
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
 
 
 def pwm_window(Ts: float, pwm_hz: float, lo: int = 8, hi: int = 60) -> int:
@@ -298,11 +324,92 @@ class ValveIdentifier(Identifier):
         b = theta[1:8:2]
         leak = theta[8] * _LEAK_UNIT
         wt = self._wt if weights is None else weights
-        return np.concatenate([
+        res = np.concatenate([
             *(self._chamber_residuals(ch, C[2 * ch:2 * ch + 2], b[2 * ch:2 * ch + 2], leak,
                                       theta[9 + ch] * _D_UNIT, ratios, wt[ch])
               for ch in range(2)),
             self._b_scale * (b - B_PRIOR) / B_PRIOR_SD])
+        self._last_eval = (theta.copy(), ratios, weights, self._b_scale, res)
+        return res
+
+    def _jac_groups(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The parameters perturbed together in one residual evaluation, and their rows.
+
+        Rows: chamber A's windows, chamber B's, the four b priors; parameters: C, b of a_in,
+        a_out, b_in, b_out, the leak, D_a, D_b. A chamber's valves and D move only its windows
+        (and b its prior), so a parameter of A and one of B are perturbed together: six
+        evaluations per Jacobian instead of eleven.
+
+        Returns
+        -------
+        list of (ndarray, ndarray)
+            Per group: the parameter indices, and per parameter the rows it moves (an object
+            array of index arrays).
+        """
+        na, nb = len(self._k0[0]), len(self._k0[1])
+        rows_a, rows_b = np.arange(na), na + np.arange(nb)
+        prior = na + nb + np.arange(4)
+        rows = []
+        for j in range(8):
+            r = rows_a if j < 4 else rows_b
+            rows.append(np.append(r, prior[j // 2]) if j % 2 else r)  # b: its prior too
+        rows += [np.concatenate([rows_a, rows_b]), rows_a, rows_b]
+        out = []
+        for cols in ([0, 4], [1, 5], [2, 6], [3, 7], [8], [9, 10]):
+            held = np.empty(len(cols), dtype=object)
+            held[:] = [rows[j] for j in cols]
+            out.append((np.array(cols), held))
+        return out
+
+    def _jacobian(self, lo: np.ndarray, hi: np.ndarray) -> Callable[..., np.ndarray] | str:
+        """The Jacobian of :meth:`_residuals` for ``least_squares`` with these bounds.
+
+        The numbers of ``least_squares``'s default ``jac='2-point'``: the same steps
+        (scipy's, adjusted to the bounds alike), each column the difference of two residual
+        evaluations over its step, the rows a parameter does not move ``0 / step`` (a
+        negative zero for a step turned back at a bound, as there). The two chambers'
+        parameters are perturbed together (:meth:`_jac_groups`), and the residuals at the
+        point come from the evaluation ``least_squares`` just made there.
+        """
+        if _compute_absolute_step is None:  # pragma: no cover
+            return "2-point"
+        groups = self._jac_groups()
+
+        def jac(theta: np.ndarray, ratios: np.ndarray,
+                weights: Sequence[np.ndarray] | None = None) -> np.ndarray:
+            last = getattr(self, "_last_eval", None)
+            if (last is not None and last[1] is ratios and last[2] is weights
+                    and last[3] == self._b_scale and np.array_equal(last[0], theta)):
+                f0 = last[4]
+            else:
+                f0 = self._residuals(theta, ratios, weights)
+            h = _compute_absolute_step(None, theta, f0, "2-point")
+            h, _ = _adjust_scheme_to_bounds(theta, h, 1, "1-sided", lo, hi)
+            dx = (theta + h) - theta
+            J = np.zeros((len(theta), len(f0)))  # transposed, as scipy fills it
+            J /= dx[:, None]
+            for cols, rows in groups:
+                x = theta.copy()
+                x[cols] = theta[cols] + h[cols]
+                df = self._residuals(x, ratios, weights) - f0
+                for j, r in zip(cols, rows, strict=True):
+                    J[j, r] = df[r] / dx[j]
+            return J.T
+
+        return jac
+
+    def _least_squares(self, theta: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                       ratios: np.ndarray, weights: Sequence[np.ndarray] | None = None,
+                       **kw: Any) -> Any:
+        """``least_squares`` of :meth:`_residuals` (bounded trf, ``x_scale='jac'``) with the
+        Jacobian of :meth:`_jacobian`; ``kw`` go to ``least_squares``."""
+        self._last_eval = None
+        try:
+            return least_squares(self._residuals, theta, jac=self._jacobian(lo, hi),
+                                 bounds=(lo, hi), args=(ratios, weights), x_scale="jac",
+                                 method="trf", **kw)
+        finally:
+            self._last_eval = None
 
     def _fit_curves(self, C: np.ndarray, b: np.ndarray, leak: float, D: np.ndarray) -> np.ndarray:
         phi = self._flows(C, b)
@@ -427,7 +534,16 @@ class ValveIdentifier(Identifier):
         ------
         IdentificationError
             A valve is never commanded open, so its C and b are not identifiable.
+
+        Notes
+        -----
+        Runs with the BLAS on one thread (:func:`single_blas_thread`).
         """
+        with single_blas_thread():
+            return self._fit(data, mask)
+
+    def _fit(self, data: Dataset, mask: np.ndarray | None) -> ValveIdentifier:
+        """:meth:`fit`, with the BLAS threads as the caller set them."""
         self._path = data.path
         mask = np.ones(data.n, dtype=bool) if mask is None else mask
         from pneutune.control.constants import VALVES
@@ -459,6 +575,13 @@ class ValveIdentifier(Identifier):
                                       for i in range(4)])
         self.knots_ = default_knots() if self.knots is None else np.asarray(self.knots, float)
         self._prepare(data, mask)
+        for chamber, k0 in zip("AB", self._k0, strict=True):
+            if len(k0) == 0:
+                raise IdentificationError(
+                    data.path, f"chamber {chamber} has no window of whole PWM periods in the "
+                    f"fitted part of the log: its valves cannot be identified; record its valve "
+                    f"tests (record --experiment identification --segments "
+                    f"valves:{chamber.lower()}) and identify both logs")
         curves = np.tile(self.knots_, (4, 1))  # start: r(u) = u
         theta = np.array([8.0, 0.3, 8.0, 0.3, 8.0, 0.3, 8.0, 0.3, 0.0, 0.0, 0.0])
         lo = np.array([0.01, 0.0, 0.01, 0.0, 0.01, 0.0, 0.01, 0.0, 0.0, -1e4, -1e4])
@@ -472,19 +595,16 @@ class ValveIdentifier(Identifier):
         # the b prior weighs like one window residual of typical size (updated after a solve)
         self._b_scale = 1.0
         for _ in range(max(1, self.iterations)):
-            sol = least_squares(self._residuals, theta, bounds=(lo, hi),
-                                args=(self._ratios(curves),),
-                                x_scale="jac", method="trf", loss=self.loss,
-                                f_scale=self.f_scale)
+            sol = self._least_squares(theta, lo, hi, self._ratios(curves), loss=self.loss,
+                                      f_scale=self.f_scale)
             theta = sol.x
             self._b_scale = float(np.sqrt(np.mean(sol.fun[:-4] ** 2)))
             C = theta[0:8:2] * _C_UNIT
             b = theta[1:8:2]
             curves = self._fit_curves(C, b, theta[8] * _LEAK_UNIT,
                                       np.array([theta[9], theta[10]]) * _D_UNIT)
-        sol = least_squares(self._residuals, theta, bounds=(lo, hi),
-                            args=(self._ratios(curves),), x_scale="jac", method="trf",
-                            loss=self.loss, f_scale=self.f_scale)
+        sol = self._least_squares(theta, lo, hi, self._ratios(curves), loss=self.loss,
+                                  f_scale=self.f_scale)
         theta = sol.x
         self.timing_ = None
         self.ratios_ = self._ratios(curves)
@@ -555,8 +675,7 @@ class ValveIdentifier(Identifier):
 
         period = 1.0 / data.rig.pwm_hz
         wt = self._wt
-        kw = {"bounds": (lo, hi), "x_scale": "jac", "method": "trf"}
-        base = least_squares(self._residuals, theta, args=(self._ratios(curves), wt), **kw)
+        base = self._least_squares(theta, lo, hi, self._ratios(curves), wt)
         rss_avg = float(np.sum(base.fun**2))
         frac = OpenFractions(data.rig, data.u, data.Ts)
         timings = []
@@ -619,8 +738,7 @@ class ValveIdentifier(Identifier):
                     timings[i] = unpack(x, j)
 
         def refit(phase: float) -> np.ndarray:
-            sol = least_squares(self._residuals, theta, args=(frac(timings, phase)[:-1], wt),
-                                **kw)
+            sol = self._least_squares(theta, lo, hi, frac(timings, phase)[:-1], wt)
             return sol.x
 
         # timings for fixed b at phase 0 (a carrier started with the log), then C and b for
@@ -653,7 +771,7 @@ class ValveIdentifier(Identifier):
             theta = refit(phase)
             b = theta[1:8:2].copy()
         ratios = frac(timings, phase)[:-1]
-        sol = least_squares(self._residuals, theta, args=(ratios, wt), **kw)
+        sol = self._least_squares(theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
         self.timing_rss_ = (rss, rss_avg)
         self.timing_tried_ = (tuple(timings), phase)

@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from pneutune.control.plant.params import (
+    N_STATE,
     P_DOFF,
     P_DON,
     P_LATCHED,
@@ -49,12 +50,12 @@ from pneutune.control.plant.params import (
 EPS_T: float = 1.0e-10
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _period_index(t: float, period: float) -> float:
     return math.floor(t / period + 1.0e-9)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def comparator(t: float, duty: float, period: float) -> float:
     """Command signal (0/1) of an edge-aligned PWM with carrier period ``period`` at time t."""
     if duty >= 1.0:
@@ -65,7 +66,7 @@ def comparator(t: float, duty: float, period: float) -> float:
     return 1.0 if phase < duty - 1.0e-9 else 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _schedule(s: np.ndarray, i: int, t_tr: float, value: float) -> None:
     """Queue valve ``i`` to go to ``value`` at ``t_tr``; later pending transitions are cancelled."""
     base_t = S_PEND_T + i * PEND_MAX
@@ -83,7 +84,7 @@ def _schedule(s: np.ndarray, i: int, t_tr: float, value: float) -> None:
     s[S_NPEND + i] = n + 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cancel_pending_opens(s: np.ndarray, i: int) -> None:
     """Drop the pending openings of valve ``i`` (a command pulse shorter than min_pulse)."""
     base_t = S_PEND_T + i * PEND_MAX
@@ -98,68 +99,123 @@ def _cancel_pending_opens(s: np.ndarray, i: int) -> None:
     s[S_NPEND + i] = k
 
 
-@njit(cache=True)
-def _fire_due(s: np.ndarray, t: float) -> None:
-    """Apply every pending transition due at or before ``t``."""
-    for i in range(4):
-        base_t = S_PEND_T + i * PEND_MAX
-        base_v = S_PEND_V + i * PEND_MAX
-        n = int(s[S_NPEND + i])
-        k = 0
-        while k < n and s[base_t + k] <= t + EPS_T:
-            s[S_OPEN + i] = s[base_v + k]
-            k += 1
-        if k > 0:
-            for j in range(n - k):
-                s[base_t + j] = s[base_t + j + k]
-                s[base_v + j] = s[base_v + j + k]
-            s[S_NPEND + i] = n - k
+@njit(cache=True, inline="always")
+def _fire_due(s: np.ndarray, i: int, t: float) -> None:
+    """Apply every pending transition of valve ``i`` due at or before ``t``."""
+    base_t = S_PEND_T + i * PEND_MAX
+    base_v = S_PEND_V + i * PEND_MAX
+    n = int(s[S_NPEND + i])
+    k = 0
+    while k < n and s[base_t + k] <= t + EPS_T:
+        s[S_OPEN + i] = s[base_v + k]
+        k += 1
+    if k > 0:
+        for j in range(n - k):
+            s[base_t + j] = s[base_t + j + k]
+            s[base_v + j] = s[base_v + j + k]
+        s[S_NPEND + i] = n - k
 
 
-@njit(cache=True)
-def _update_signals(p: np.ndarray, s: np.ndarray, t: float) -> None:
-    """Re-evaluate each comparator at ``t`` and turn its edges into valve transitions."""
+@njit(cache=True, inline="always")
+def _update_signal(p: np.ndarray, s: np.ndarray, i: int, t: float) -> None:
+    """Re-evaluate valve ``i``'s comparator at ``t`` and turn its edge into a transition."""
+    sig = comparator(t, s[S_DUTY + i], p[P_TPWM])
+    old = s[S_SIG + i]
+    if sig > old:
+        s[S_RISE + i] = t
+        _schedule(s, i, t + p[P_DON + i], 1.0)
+    elif sig < old:
+        if t - s[S_RISE + i] < p[P_MINP + i] - EPS_T:
+            _cancel_pending_opens(s, i)
+        _schedule(s, i, t + p[P_DOFF + i], 0.0)
+    s[S_SIG + i] = sig
+
+
+@njit(cache=True, inline="always")
+def _at_period_start(p: np.ndarray, t: float) -> bool:
+    """Whether ``t`` is a PWM period start, where a latched duty takes effect."""
     period = p[P_TPWM]
-    for i in range(4):
-        sig = comparator(t, s[S_DUTY + i], period)
-        old = s[S_SIG + i]
-        if sig > old:
-            s[S_RISE + i] = t
-            _schedule(s, i, t + p[P_DON + i], 1.0)
-        elif sig < old:
-            if t - s[S_RISE + i] < p[P_MINP + i] - EPS_T:
-                _cancel_pending_opens(s, i)
-            _schedule(s, i, t + p[P_DOFF + i], 0.0)
-        s[S_SIG + i] = sig
+    k = _period_index(t, period)
+    return abs(t - k * period) <= EPS_T
+
+
+@njit(cache=True, inline="always")
+def valve_events(p: np.ndarray, s: np.ndarray, i: int, t: float, period_start: bool) -> None:
+    """Everything that happens to valve ``i`` at time ``t``: the switching of one valve.
+
+    In latched mode the commanded duty takes effect at a period start; the transitions due
+    fire; the comparator's edge at ``t`` (if any) schedules the next transition (cancelling
+    the pending openings of a command pulse shorter than the minimum pulse, and every pending
+    transition later than the new one); zero delays fire at once. The plant
+    (:func:`process_events`), :func:`open_fractions` and :func:`valve_open_fractions` switch
+    every valve with this function; the valves do not interact.
+
+    Parameters
+    ----------
+    p : ndarray
+        Packed plant parameters (the PWM period, update mode and valve ``i``'s timing).
+    s : ndarray
+        Plant state; valve ``i``'s slots are updated.
+    i : int
+        Valve index, 0..3.
+    t : float
+        Time [s].
+    period_start : bool
+        Whether ``t`` is a PWM period start (:func:`_at_period_start`; computed once for the
+        four valves, and only in latched mode, the only one that reads it).
+    """
+    if period_start and p[P_LATCHED] > 0.5:
+        s[S_DUTY + i] = s[S_CMD + i]
+    _fire_due(s, i, t)
+    _update_signal(p, s, i, t)
+    _fire_due(s, i, t)  # zero delays act at once
 
 
 @njit(cache=True)
 def process_events(p: np.ndarray, s: np.ndarray, t: float) -> None:
     """Handle everything that happens at time ``t``: latching, valve transitions, PWM edges."""
-    period = p[P_TPWM]
-    if p[P_LATCHED] > 0.5:
-        k = _period_index(t, period)
-        if abs(t - k * period) <= EPS_T:
-            for i in range(4):
-                s[S_DUTY + i] = s[S_CMD + i]
-    _fire_due(s, t)
-    _update_signals(p, s, t)
-    _fire_due(s, t)  # zero delays act at once
+    period_start = p[P_LATCHED] > 0.5 and _at_period_start(p, t)
+    for i in range(4):
+        valve_events(p, s, i, t, period_start)
+
+
+@njit(cache=True, inline="always")
+def write_duty(p: np.ndarray, s: np.ndarray, i: int, u: float) -> None:
+    """Command duty ``u`` to valve ``i`` (clipped to 0..1; NaN counts as 0); in immediate mode
+    the comparator uses it at once, in latched mode from the next period start."""
+    if not (u > 0.0):
+        u = 0.0
+    elif u > 1.0:
+        u = 1.0
+    s[S_CMD + i] = u
+    if p[P_LATCHED] < 0.5:
+        s[S_DUTY + i] = u
 
 
 @njit(cache=True)
 def set_duties(p: np.ndarray, s: np.ndarray, t: float, duties: np.ndarray) -> None:
     """Write the four commanded duties at time ``t`` (clipped to 0..1; NaN counts as 0)."""
     for i in range(4):
-        u = duties[i]
-        if not (u > 0.0):
-            u = 0.0
-        elif u > 1.0:
-            u = 1.0
-        s[S_CMD + i] = u
-        if p[P_LATCHED] < 0.5:
-            s[S_DUTY + i] = u
+        write_duty(p, s, i, duties[i])
     process_events(p, s, t)
+
+
+@njit(cache=True, inline="always")
+def valve_next_event(p: np.ndarray, s: np.ndarray, i: int, t: float, k: float,
+                     t_next: float) -> float:
+    """The earlier of ``t_next`` and valve ``i``'s next comparator edge or pending transition
+    after ``t`` (``k``: the index of the PWM period holding ``t``)."""
+    u = s[S_DUTY + i]
+    if 0.0 < u < 1.0:
+        t_cross = (k + u) * p[P_TPWM]
+        if t + EPS_T < t_cross < t_next:
+            t_next = t_cross
+    n = int(s[S_NPEND + i])
+    if n > 0:
+        t_p = s[S_PEND_T + i * PEND_MAX]
+        if t_p < t_next:
+            t_next = t_p
+    return t_next
 
 
 @njit(cache=True)
@@ -172,16 +228,7 @@ def next_event(p: np.ndarray, s: np.ndarray, t: float, t_end: float) -> float:
     if t_ps < t_next:
         t_next = t_ps
     for i in range(4):
-        u = s[S_DUTY + i]
-        if 0.0 < u < 1.0:
-            t_cross = (k + u) * period
-            if t + EPS_T < t_cross < t_next:
-                t_next = t_cross
-        n = int(s[S_NPEND + i])
-        if n > 0:
-            t_p = s[S_PEND_T + i * PEND_MAX]
-            if t_p < t_next:
-                t_next = t_p
+        t_next = valve_next_event(p, s, i, t, k, t_next)
     return t_next
 
 
@@ -235,10 +282,11 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
     """Open fraction per sample of one valve alone, for several candidate timings in one call.
 
     Candidate ``m`` is the valve with ``timings[m] = (delay_on, delay_off, min_pulse)`` driven by
-    ``duties`` written at ``phases[m] + k Ts``, switched exactly as :func:`open_fractions`
-    switches a valve (the same comparator, edges, pending transitions, minimum-pulse rule and
-    event tolerances), starting closed. It gives what :func:`open_fractions` gives for this
-    valve when the other three are never commanded open, bit for bit. With the others switching,
+    ``duties`` written at ``phases[m] + k Ts``, starting closed, switched by the plant's own
+    functions (:func:`write_duty`, :func:`valve_events`, :func:`valve_next_event`) in slot 0
+    of a scratch parameter vector and state. It gives what :func:`open_fractions` gives for
+    this valve when the other three are never commanded open, bit for bit (both sum the open
+    time over the same events: the period starts and this valve's). With the others switching,
     :func:`open_fractions` sums each sample's open time over the finer grid of all four valves'
     events, which rounds differently (a few 1e-12 of the fraction on a 144 s log); the switching
     itself is the same, since the valves do not interact. For searches that vary one valve at a
@@ -261,102 +309,32 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
         Open fraction of ``[phases[m] + k Ts, phases[m] + (k + 1) Ts)``, 0..1.
     """
     period = p[P_TPWM]
-    latched = p[P_LATCHED] > 0.5
     n = duties.shape[0]
-    pend_t = np.empty(PEND_MAX)
-    pend_v = np.empty(PEND_MAX)
+    # the valve in slot 0 of a scratch plant: its parameters with the candidate's timing, and
+    # the valve slots of a fresh plant state (closed, command low, nothing pending)
+    latched = p[P_LATCHED] > 0.5
+    q = p.copy()
+    s = np.empty(N_STATE)
     for m in range(timings.shape[0]):
-        don = timings[m, 0]
-        doff = timings[m, 1]
-        minp = timings[m, 2]
+        q[P_DON] = timings[m, 0]
+        q[P_DOFF] = timings[m, 1]
+        q[P_MINP] = timings[m, 2]
+        s[:] = 0.0
         t0 = phases[m]
-        # the valve's slots of a fresh plant state: closed, command low, nothing pending
-        sig = 0.0
-        is_open = 0.0
-        rise = 0.0
-        duty = 0.0
-        cmd = 0.0
-        npend = 0
         for k in range(n):
             t = t0 + k * Ts
             t_end = t0 + (k + 1) * Ts
             acc = 0.0
-            # set_duties
-            u = duties[k]
-            if not (u > 0.0):
-                u = 0.0
-            elif u > 1.0:
-                u = 1.0
-            cmd = u
-            if not latched:
-                duty = u
-            first = True
-            while True:
-                if not first:
-                    if not (t < t_end - EPS_T):
-                        break
-                    # next_event
-                    kp = _period_index(t, period)
-                    t_next = t_end
-                    t_ps = (kp + 1.0) * period
-                    if t_ps < t_next:
-                        t_next = t_ps
-                    if 0.0 < duty < 1.0:
-                        t_cross = (kp + duty) * period
-                        if t + EPS_T < t_cross < t_next:
-                            t_next = t_cross
-                    if npend > 0:
-                        t_p = pend_t[0]
-                        if t_p < t_next:
-                            t_next = t_p
-                    acc += is_open * (t_next - t)
-                    t = t_next
-                first = False
-                # process_events: latching, due transitions, comparator edges, due again
-                if latched:
-                    kp = _period_index(t, period)
-                    if abs(t - kp * period) <= EPS_T:
-                        duty = cmd
-                for stage in range(2):
-                    j = 0
-                    while j < npend and pend_t[j] <= t + EPS_T:
-                        is_open = pend_v[j]
-                        j += 1
-                    if j > 0:
-                        for q in range(npend - j):
-                            pend_t[q] = pend_t[q + j]
-                            pend_v[q] = pend_v[q + j]
-                        npend -= j
-                    if stage == 1:
-                        break
-                    new_sig = comparator(t, duty, period)
-                    t_tr = -1.0
-                    value = 0.0
-                    if new_sig > sig:
-                        rise = t
-                        t_tr = t + don
-                        value = 1.0
-                    elif new_sig < sig:
-                        if t - rise < minp - EPS_T:  # too short a pulse: drop pending openings
-                            q = 0
-                            for r in range(npend):
-                                if pend_v[r] < 0.5:
-                                    pend_t[q] = pend_t[r]
-                                    pend_v[q] = pend_v[r]
-                                    q += 1
-                            npend = q
-                        t_tr = t + doff
-                        value = 0.0
-                    if new_sig != sig:  # schedule; later pending transitions are cancelled
-                        while npend > 0 and pend_t[npend - 1] > t_tr:
-                            npend -= 1
-                        if npend == PEND_MAX:
-                            for q in range(npend - 1):
-                                pend_t[q] = pend_t[q + 1]
-                                pend_v[q] = pend_v[q + 1]
-                            npend -= 1
-                        pend_t[npend] = t_tr
-                        pend_v[npend] = value
-                        npend += 1
-                    sig = new_sig
+            write_duty(q, s, 0, duties[k])
+            valve_events(q, s, 0, t, latched and _at_period_start(q, t))
+            while t < t_end - EPS_T:
+                kp = _period_index(t, period)
+                t_next = t_end
+                t_ps = (kp + 1.0) * period
+                if t_ps < t_next:
+                    t_next = t_ps
+                t_next = valve_next_event(q, s, 0, t, kp, t_next)
+                acc += s[S_OPEN] * (t_next - t)
+                t = t_next
+                valve_events(q, s, 0, t, latched and _at_period_start(q, t))
             out[m, k] = acc / Ts
