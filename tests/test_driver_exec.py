@@ -11,13 +11,12 @@ from __future__ import annotations
 import json
 import re
 import shlex
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from rig_helpers import compile_c_driver
 
 from pneutune.control import driver
 from pneutune.control.cli.common import run_cli
@@ -245,15 +244,7 @@ def test_check_bad_arguments_exit_2(capsys):
 @pytest.fixture(scope="module")
 def c_driver(tmp_path_factory) -> Path:
     """docs/examples/rig_driver.c compiled with gcc, as docs/deploy.md says."""
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        pytest.skip("gcc is not installed")
-    exe = tmp_path_factory.mktemp("c_driver") / "rig_driver"
-    proc = subprocess.run([gcc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-o",
-                           str(exe), str(C_DRIVER), "-lm"],
-                          capture_output=True, text=True, timeout=120, check=False)
-    assert proc.returncode == 0, proc.stderr
-    return exe
+    return compile_c_driver(tmp_path_factory.mktemp("c_driver"))
 
 
 def test_c_driver_passes_check(c_driver, capsys):

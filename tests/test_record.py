@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import json
 import shlex
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from rig_helpers import compile_c_driver
 
 from pneutune.control.cli.deploy import main as deploy_main
 from pneutune.control.cli.record import EXIT_FAULT, EXIT_INTERRUPTED
@@ -42,7 +42,6 @@ from pneutune.control.rig.supervisor import Supervisor
 
 ROOT = Path(__file__).resolve().parents[1]
 SPY = ROOT / "tests" / "drivers" / "spy_driver.py"
-C_DRIVER = ROOT / "docs" / "examples" / "rig_driver.c"
 PAPER_YAML = ROOT / "data" / "controller-paper.yaml"
 PLANT = PlantConfig()
 RIG = PLANT.rig
@@ -262,15 +261,7 @@ def test_a_selection_inside_a_group_gets_its_lead_in():
 @pytest.fixture(scope="module")
 def c_driver(tmp_path_factory) -> Path:
     """docs/examples/rig_driver.c compiled with gcc, warning-free."""
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        pytest.skip("gcc is not installed")
-    exe = tmp_path_factory.mktemp("c_driver") / "rig_driver"
-    proc = subprocess.run([gcc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Wpedantic", "-Werror",
-                           "-o", str(exe), str(C_DRIVER), "-lm"],
-                          capture_output=True, text=True, timeout=120, check=False)
-    assert proc.returncode == 0, proc.stderr
-    return exe
+    return compile_c_driver(tmp_path_factory.mktemp("c_driver"))
 
 
 def test_c_driver_runs_a_shortened_protocol(c_driver, tmp_path, capsys):
