@@ -2,7 +2,7 @@
 
 A valve driven by an edge-aligned PWM (period ``1/pwm_hz``) opens ``delay_on`` after each rising
 command edge and closes ``delay_off`` after each falling one, and a command pulse shorter than
-``min_pulse`` never opens it (DESIGN.md; the switching itself is simulated event by event in
+``min_pulse`` never opens it (the switching itself is simulated event by event in
 :mod:`pneutune.control.plant.valves`). For a constant duty that gives the closed form
 :func:`effective_open_fraction`: a dead zone near 0, the duty shifted by the difference of the
 delays, saturation near 1. :func:`sample_pwm_curve` turns it into the points of a contract-4

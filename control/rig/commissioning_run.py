@@ -3,8 +3,9 @@
 A commissioning engineer with another vendor's tools excites a new rig differently from
 :mod:`~pneutune.control.rig.identification_run`: staircases instead of charge/vent pairs, a
 velocity loop instead of a position loop, open-loop bursts instead of sines, and a log at the
-control rate without any simulator truth. ``identify`` must work on such a log too (DESIGN.md,
-contract 1; STYLE.md 16: test on what you did not write), so this protocol is deliberately not
+control rate without any simulator truth. ``identify`` must work on such a log too (any
+honest contract-1 log; a test on data one did not design oneself), so this protocol is
+deliberately not
 the identification run re-sampled. It needs only the stroke ends and the control period
 ``Ts``, and every duty changes only at a control instant. Segments, in order, each labelled
 on ``/experiment/segment``:

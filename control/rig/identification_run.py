@@ -124,7 +124,7 @@ class Segment:
 
 
 def mode_duties(u: float) -> np.ndarray:
-    """The four duties of a signed command ``u`` in [-1, 1] (the modes of DESIGN.md).
+    """The four duties of a signed command ``u`` in [-1, 1] (the paper's valve modes).
 
     u > 0 opens a_in and b_out with duty u (mode 1), u < 0 opens a_out and b_in with duty -u
     (mode 2), u = 0 closes all (mode 3).

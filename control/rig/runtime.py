@@ -8,7 +8,7 @@ Per sample k (rig time t = k Ts), in this order:
    a fault writes the fail-safe duties *in this sample*, records the event and stops the loop:
    the bad sample never reaches the control law;
 3. :func:`pneutune.control.law.darc.step_into`, the same compiled step as the simulator and the
-   tuner (STYLE.md §2), on ``[t, x, p_a, p_b, p_s, x_r, v_r, a_r]``;
+   tuner (the control law exists once), on ``[t, x, p_a, p_b, p_s, x_r, v_r, a_r]``;
 4. ``rig.write(duties)``;
 5. the supervisor's re-identification warnings on θ̂ and p_s (they never stop the run);
 6. ``rig.advance()`` to the next sample, then (``realtime``) wait for its wall-clock time.

@@ -1,6 +1,6 @@
 """Reference trajectories and the closed-loop scenarios of the paper's Sec. 5 (Table 1, Fig. 17).
 
-All trajectories are centred at mid-stroke (23.5 mm on the paper's rig; DESIGN.md) and are
+All trajectories are centred at mid-stroke (23.5 mm on the paper's rig) and are
 returned as ``(N, 3)`` arrays of ``[x_r, v_r, a_r]`` in m, m/s, m/s^2.
 
 The paper does not give the smooth square's edges: here each edge is a quintic
