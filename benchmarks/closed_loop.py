@@ -6,13 +6,18 @@ Prints:
   best of 5, one core (target: >= 1000);
 * E_p and E_rms of that run at the default step against a 10 us run (target: within 0.005 mm);
 * the latency of one controller step called from Python (`darc.step`), p50 and p99 over
-  20,000 calls (target: p99 <= 20 us), and of the compiled `step_into` inside the loop.
+  20,000 calls (target: p99 <= 20 us), and of the compiled `step_into` inside the loop;
+* the cost of each real-rig effect (:mod:`pneutune.control.sim.rig_effects`, typical
+  magnitudes): the same 20 s run with that effect alone and with all of them, simulated seconds
+  per wall second (best of 3) against the plant without effects measured beside it (skip with
+  ``--no-effects``).
 
-    .venv/bin/python benchmarks/closed_loop.py
+    .venv/bin/python benchmarks/closed_loop.py [--no-effects]
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -22,6 +27,7 @@ from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.law import darc
 from pneutune.control.law.layout import pack
+from pneutune.control.sim import rig_effects
 from pneutune.control.sim.closed_loop import simulate_scenario
 from pneutune.control.sim.scenarios import SCENARIOS, Scenario
 
@@ -71,6 +77,30 @@ def main() -> None:
     p50, p99 = np.percentile(lat, [50, 99]) / 1e3
     print(f"controller step from Python (darc.step): p50 {p50:.2f} us, p99 {p99:.2f} us, "
           f"max {lat.max() / 1e3:.1f} us (target p99 <= 20 us)")
+    if "--no-effects" not in sys.argv[1:]:
+        effect_costs(controller, cfg, sc)
+
+
+def effect_costs(controller: object, cfg: np.ndarray, sc: Scenario) -> None:
+    """Print the closed loop's speed with each real-rig effect alone and with all of them."""
+    m = rig_effects.typical()
+    cases = {"none": PlantConfig()}
+    for name in rig_effects.EFFECTS:
+        cases[name] = PlantConfig().with_updates(rig_effects.plant_updates(m, (name,)))
+    cases["all"] = PlantConfig().with_updates(rig_effects.plant_updates(m))
+    best = {}
+    for name, plant in cases.items():
+        simulate_scenario(controller, sc, plant, seed=1, cfg_vec=cfg)  # compile or load
+        walls = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            simulate_scenario(controller, sc, plant, seed=1, cfg_vec=cfg)
+            walls.append(time.perf_counter() - t0)
+        best[name] = min(walls)
+    print("cost of each real-rig effect at its typical magnitude (20 s sine-0.5hz, best of 3):")
+    for name, wall in best.items():
+        print(f"  {name:14s} {sc.duration / wall:8,.0f} simulated s per wall s "
+              f"({wall / best['none']:.2f} x the time without effects)")
 
 
 if __name__ == "__main__":

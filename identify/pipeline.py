@@ -201,17 +201,26 @@ def _mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit: np.n
         notes.append(f"mass: the estimate's interval [{lo:.3g}, {hi:.3g}] kg lies outside the "
                      f"{prior_basis} [{prior[0]:.3g}, {prior[1]:.3g}] kg; the data win")
         return est.M_, (lo, hi), basis, est
-    if lo <= limit:
+    if fast:
+        # the log is sampled fast enough for the lag estimate, which failed (its note says why)
+        why = ("At this sampling the mass comes from the lag of the motion behind the pressure "
+               "force, which gave no usable estimate (see its note); the integrated motion "
+               "equation cannot replace it.")
+    elif lo <= limit:
         why = (f"With a viscous coefficient of {friction.b_v_:.0f} N s/m the mechanical pole "
                f"b_v/M lies above the Nyquist frequency of the {data.Ts * 1e3:g} ms sampling "
                f"for any mass below {limit:.3g} kg, where this estimate is biased "
                f"(docs/identifiability.md); an identification run logged every 0.5 ms "
-               f"resolves the mass (simulate --sample-period).")
+               f"resolves the mass (record --sample-period 0.0005).")
     else:
         why = f"It is wider than a factor {MASS_IDENTIFIABLE_RATIO:g}."
+    interval = (f"is [{lo:.3g}, {hi:.3g}] kg" if hi > lo else
+                f"lies below zero (its upper end is {hi:.3g} kg): the accelerations do not "
+                f"follow the pressure force as the model has it (a lag between them, such as "
+                f"a pressure transmitter's, or dynamics the model lacks)")
     notes.append(
-        f"mass: not identifiable from this log: the 99 % interval of the estimate is "
-        f"[{lo:.3g}, {hi:.3g}] kg. {why} θ1 uses the {prior_basis}: [{prior[0]:.3g}, "
+        f"mass: not identifiable from this log: the 99 % interval of the estimate "
+        f"{interval}. {why} θ1 uses the {prior_basis}: [{prior[0]:.3g}, "
         f"{prior[1]:.3g}] kg (nominal {prior_nominal:.3g} kg), narrowed by the cross-check "
         f"where the log contradicts its ends; give --mass KG (datasheet plus weighed payload) "
         f"or a rig.mass hint in the log to narrow it")
@@ -364,8 +373,8 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
         notes.append("friction: the stiction peak is not resolved by the sliding samples "
                      f"(F_S {friction.F_S_:.3g} N, F_C {friction.F_C_:.3g} N, exponent "
                      f"{friction.alpha_:.3g}); the Stribeck velocity and exponent are weakly "
-                     "identified from 4 ms samples, and θ4 allows a stiction excess of half "
-                     "F_C")
+                     f"identified from the {data.Ts * 1e3:g} ms samples the friction fit uses, "
+                     "and θ4 allows a stiction excess of half F_C")
     sources = _Sources(pl, vpl, vfit, valves, friction) if several else None
     if sources is not None:
         theta = sources.theta(theta)

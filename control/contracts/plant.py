@@ -84,6 +84,12 @@ class RigConfig(_Strict):
 class FrictionConfig(_Strict):
     """Stribeck friction of Eq. (2).
 
+    With ``sigma0`` > 0 the friction is the LuGre model instead (a real-rig effect): a bristle
+    deflection z with ``dz/dt = v - sigma0 |v| z / g(v)``, ``g(v) = F_C + (F_S - F_C)
+    exp(-(|v|/v_s)^alpha)`` and ``F_f = sigma0 z + sigma1 dz/dt + b_v v``. In steady sliding it
+    is Eq. (2)'s Stribeck curve, so F_S, F_C, v_s, alpha and b_v keep their meaning; below
+    break-away the piston creeps micrometres on the bristles' stiffness instead of sticking.
+
     Only b_v = 3500 N s/m is in the paper. Not in the paper: F_S, F_C, v_s and alpha; the
     defaults are plausible for a 100 mm bore cylinder (DESIGN.md: F_C tens of newtons, F_S above
     F_C, Stribeck velocity a few mm/s) and consistent with the paper's nominal A_f = 100 N of the
@@ -95,6 +101,13 @@ class FrictionConfig(_Strict):
     v_s: float = Field(0.005, gt=0.0, le=1.0, description="Stribeck velocity [m/s]")
     alpha: float = Field(2.0, gt=0.0, le=10.0, description="Stribeck exponent [-]")
     b_v: float = Field(3500.0, ge=0.0, le=1.0e5, description="Viscous coefficient [N s/m]")
+    sigma0: float = Field(
+        0.0, ge=0.0, le=1.0e8,
+        description="LuGre bristle stiffness [N/m] (pre-sliding, a real-rig effect; 1e5-1e7 "
+        "typical of pneumatic seals); 0: the stick-slip law of Eq. (2)")
+    sigma1: float = Field(
+        0.0, ge=0.0, le=1.0e5,
+        description="LuGre bristle damping [N s/m] (used only with sigma0 > 0)")
 
     @field_validator("F_C")
     @classmethod
@@ -103,6 +116,13 @@ class FrictionConfig(_Strict):
         if F_S is not None and value > F_S:
             raise ValueError(f"F_C <= F_S must hold, got F_S={F_S}, F_C={value}")
         return value
+
+    @model_validator(mode="after")
+    def _lugre_needs_coulomb(self) -> FrictionConfig:
+        if self.sigma0 > 0.0 and not self.F_C > 0.0:
+            raise ValueError(f"sigma0 > 0 (LuGre) needs F_C > 0: the bristles relax at the rate "
+                             f"sigma0 |v| / g(v) and g(v) >= F_C; got F_C={self.F_C}")
+        return self
 
 
 class ValveConfig(_Strict):
@@ -119,6 +139,15 @@ class ValveConfig(_Strict):
     delay_on: float = Field(2.0e-3, ge=0.0, le=0.05, description="Command-on to open [s]")
     delay_off: float = Field(3.0e-3, ge=0.0, le=0.05, description="Command-off to closed [s]")
     min_pulse: float = Field(1.5e-3, ge=0.0, le=0.05, description="Shortest pulse that opens [s]")
+    tau_open: float = Field(
+        0.0, ge=0.0, le=0.02,
+        description="Armature/spool opening time constant [s]: from the opening delay on, the "
+        "open fraction rises as 1 - exp(-t/tau_open) instead of at once (a real-rig effect, "
+        "not in the paper; fast solenoid valves 0.2-1 ms; 0: off)")
+    tau_close: float = Field(
+        0.0, ge=0.0, le=0.02,
+        description="Armature/spool closing time constant [s]: from the closing delay on, the "
+        "open fraction falls as exp(-t/tau_close) (0.2-1.5 ms typical; 0: off)")
 
     @field_validator("min_pulse")
     @classmethod
@@ -147,6 +176,83 @@ class LeakConfig(_Strict):
     """Piston-seal leak between A and B: ISO 6358 form with b = 0 (not in the paper)."""
 
     C: float = Field(0.0, ge=0.0, le=1.0e-7, description="Leak conductance [m^3/(s Pa)]")
+
+
+class LineConfig(_Strict):
+    """The pneumatic line between one chamber's two valves and the chamber (a real-rig effect,
+    not in the paper; every term off by default).
+
+    Quasi-static: the pressure wave needs ``delay`` to travel the line, so a valve's switching
+    reaches the chamber that much later; the line's ``volume`` adds to the chamber's dead volume;
+    its conductance ``C`` (ISO 6358 form with critical ratio ``b``) is in series with whichever
+    of the chamber's valves is open, meeting them at a junction of negligible volume.
+    """
+
+    delay: float = Field(
+        0.0, ge=0.0, le=0.01,
+        description="Transport delay valve -> chamber [s]: length over the speed of sound "
+        "(about 3 ms per metre of tube)")
+    volume: float = Field(
+        0.0, ge=0.0, le=0.01,
+        description="Volume of the line, added to the chamber's dead volume [m^3] (0.5 m of "
+        "6 mm bore tube: 1.4e-5 m^3)")
+    C: float | None = Field(
+        None, gt=0.0, le=1.0e-6,
+        description="Sonic conductance of the line [m^3/(s Pa)]; null: no restriction")
+    b: float = Field(0.3, ge=0.0, le=0.95, description="Critical pressure ratio of the line [-]")
+
+
+class LinesConfig(_Strict):
+    """The two lines: ``a`` feeds chamber A (valves a_in, a_out), ``b`` chamber B."""
+
+    a: LineConfig = LineConfig()
+    b: LineConfig = LineConfig()
+
+
+class HeatConfig(_Strict):
+    """Chamber thermodynamics (a real-rig effect, not in the paper; off by default).
+
+    With ``h`` null the chambers follow the paper's Eqs. (5)-(6): a fixed polytropic exponent
+    ``rig.n`` at the constant temperature ``rig.T0``. With ``h`` set, each chamber's gas
+    temperature is a state: the energy equation with the ratio of specific heats ``gamma``,
+    inflow at the supply temperature ``rig.T0``, outflow at the chamber's temperature, and
+    convection ``h`` to the walls, which stay at ``rig.T0``. The wall area is the two end
+    faces plus the bore's perimeter times the chamber's length (its volume over its area).
+    """
+
+    h: float | None = Field(
+        None, ge=0.0, le=1.0e3,
+        description="Wall heat-transfer coefficient [W/(m^2 K)] (5-50 typical of cylinder "
+        "chambers; 0: adiabatic); null: the fixed polytropic exponent rig.n")
+    gamma: float = Field(1.4, ge=1.0, le=1.67, description="Ratio of specific heats [-]")
+
+
+class IOConfig(_Strict):
+    """The data acquisition between the controller and the valves (not in the paper)."""
+
+    delay: float = Field(
+        0.0, ge=0.0, le=0.01,
+        description="IO delay [s]: a duty written at a sample takes effect this much later "
+        "(computation and output latency; 0: at once)")
+
+
+class SupplyConfig(_Strict):
+    """The supply line from the regulator to the inlet valves (a real-rig effect, not in the
+    paper; off by default).
+
+    With ``C`` set, the regulator holds ``rig.p_s`` (or the scenario's supply) upstream of a
+    line of conductance ``C`` that fills a manifold of ``volume``, from which both inlet valves
+    draw: at high flow the valves see the manifold's pressure droop, which the supply
+    transmitter reads.
+    """
+
+    C: float | None = Field(
+        None, gt=0.0, le=1.0e-6,
+        description="Sonic conductance of the supply line and regulator [m^3/(s Pa)]; "
+        "null: a stiff supply at rig.p_s")
+    b: float = Field(0.3, ge=0.0, le=0.95, description="Critical pressure ratio of the line [-]")
+    volume: float = Field(2.0e-4, gt=0.0, le=0.1,
+                          description="Volume of the manifold and hose at the valves [m^3]")
 
 
 class DisturbanceConfig(_Strict):
@@ -184,11 +290,21 @@ class SensorsConfig(_Strict):
 
     Position: a resistive 75 mm sensor read by a 16-bit card (1.2 um steps) with 5 um noise.
     Pressures (chambers and supply): 300 Pa noise (0.03 % of a 10 bar span).
+    Lags and the pressure quantum are real-rig effects, off by default: each reading is the
+    first-order-lagged true value, then noise is added, then it is quantised.
     """
 
     x_noise: float = Field(5.0e-6, ge=0.0, le=1.0e-3, description="Position noise std [m]")
     x_step: float = Field(1.2e-6, ge=0.0, le=1.0e-3, description="Position quantum [m]")
     p_noise: float = Field(300.0, ge=0.0, le=1.0e5, description="Pressure noise std [Pa]")
+    p_step: float = Field(0.0, ge=0.0, le=1.0e5,
+                          description="Pressure quantum [Pa] (12-bit on 10 bar: 244 Pa; 0: off)")
+    x_lag: float = Field(0.0, ge=0.0, le=0.05,
+                         description="Position sensor first-order lag [s] (0: off)")
+    p_lag: float = Field(
+        0.0, ge=0.0, le=0.05,
+        description="Pressure transmitter first-order lag [s], chambers and supply "
+        "(0.5-2 ms typical of industrial transmitters; 0: off)")
 
 
 class SimConfig(_Strict):
@@ -214,6 +330,10 @@ class PlantConfig(_Strict):
     friction: FrictionConfig = FrictionConfig()
     valves: ValvesConfig = ValvesConfig()
     leak: LeakConfig = LeakConfig()
+    lines: LinesConfig = LinesConfig()
+    heat: HeatConfig = HeatConfig()
+    supply: SupplyConfig = SupplyConfig()
+    io: IOConfig = IOConfig()
     disturbance: DisturbanceConfig = DisturbanceConfig()
     sensors: SensorsConfig = SensorsConfig()
     sim: SimConfig = SimConfig()
@@ -225,12 +345,36 @@ class PlantConfig(_Strict):
     def _check(self) -> PlantConfig:
         period = self.rig.pwm_period
         for name, valve in zip(VALVES, self.valves.ordered(), strict=True):
-            slowest = max(valve.delay_on, valve.delay_off)
+            line = self.lines.a if name.startswith("a_") else self.lines.b
+            slowest = max(valve.delay_on, valve.delay_off) + line.delay
             if slowest > 4.0 * period:
+                side = "a" if name.startswith("a_") else "b"
                 raise ValueError(
-                    f"valves.{name}: delays must not exceed 4 PWM periods "
-                    f"({4.0 * period:.6g} s at rig.pwm_hz={self.rig.pwm_hz}), got {slowest}")
+                    f"valves.{name}: delays plus lines.{side}.delay must not exceed 4 PWM "
+                    f"periods ({4.0 * period:.6g} s at rig.pwm_hz={self.rig.pwm_hz}), "
+                    f"got {slowest}")
         return self
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        """The real-rig effects switched on (empty: the paper's model of Sec. 2)."""
+        on = []
+        if any(v.tau_open > 0.0 or v.tau_close > 0.0 for v in self.valves.ordered()):
+            on.append("valve lag")
+        if any(ln.delay > 0.0 or ln.volume > 0.0 or ln.C is not None
+               for ln in (self.lines.a, self.lines.b)):
+            on.append("lines")
+        if self.heat.h is not None:
+            on.append("heat transfer")
+        if self.friction.sigma0 > 0.0:
+            on.append("pre-sliding")
+        if self.sensors.x_lag > 0.0 or self.sensors.p_lag > 0.0 or self.sensors.p_step > 0.0:
+            on.append("sensor lag")
+        if self.io.delay > 0.0:
+            on.append("IO delay")
+        if self.supply.C is not None:
+            on.append("supply droop")
+        return tuple(on)
 
     @property
     def total_mass(self) -> float:

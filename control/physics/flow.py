@@ -80,6 +80,16 @@ def signed_flow(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
     return -iso6358_flow(C, b, p_2, p_1, T)
 
 
+@njit(cache=True)
+def signed_flow_t(C: float, b: float, p_1: float, p_2: float, T_1: float, T_2: float) -> float:
+    """Mass flow from port 1 to port 2 [kg/s], negative when it reverses, with each port's own
+    gas temperature ``T_1``, ``T_2`` [K]: the upstream one sets the flow (for chambers whose
+    temperature is a state)."""
+    if p_1 >= p_2:
+        return iso6358_flow(C, b, p_1, p_2, T_1)
+    return -iso6358_flow(C, b, p_2, p_1, T_2)
+
+
 @vectorize(["float64(float64, float64, float64, float64, float64)"], cache=True)
 def signed_flow_array(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
     """:func:`signed_flow` as a numpy ufunc (broadcasts over arrays), for the identifiers."""

@@ -1,7 +1,8 @@
 """Friction models of the paper, once: scalar forms compiled with numba (the plant and the
 control law), vectorised numpy forms beside them (identification), tested to agree.
 
-* :func:`stribeck_force` / :func:`stribeck` - Eq. (2), the friction while sliding.
+* :func:`stribeck_force` / :func:`stribeck` - Eq. (2), the friction while sliding
+  (:func:`stribeck_level`: its Coulomb-plus-Stribeck part).
 * :func:`smooth_sign` / :func:`smooth_sign_array` - S_f of Eq. (4), ``(2/pi) arctan(1000 v)``.
 * :func:`smooth_friction` - Eqs. (3)-(4), the controller's smooth approximation
   ``b_v v + A_f S_f(v)``.
@@ -29,6 +30,24 @@ SF_SLOPE: float = 1000.0
 
 
 @njit(cache=True)
+def stribeck_level(av: float, F_S: float, F_C: float, v_s: float, alpha: float) -> float:
+    """The Coulomb-plus-Stribeck level ``F_C + (F_S - F_C) exp(-(|v|/v_s)^alpha)`` of Eq. (2) at
+    speed ``av = |v|`` [N]: the sliding friction without its viscous term (also the LuGre
+    model's g(v), which makes its steady sliding Eq. (2))."""
+    if av > 0.0:
+        ratio = av / v_s
+        if alpha == 2.0:
+            g = math.exp(-ratio * ratio)
+        elif alpha == 1.0:
+            g = math.exp(-ratio)
+        else:
+            g = math.exp(-math.exp(alpha * math.log(ratio)))
+    else:
+        g = 1.0
+    return F_C + (F_S - F_C) * g
+
+
+@njit(cache=True)
 def stribeck_force(v: float, direction: float, F_S: float, F_C: float, v_s: float,
                    alpha: float, b_v: float) -> float:
     """Sliding friction of Eq. (2) [N].
@@ -49,18 +68,7 @@ def stribeck_force(v: float, direction: float, F_S: float, F_C: float, v_s: floa
     b_v : float
         Viscous coefficient [N s/m].
     """
-    av = abs(v)
-    if av > 0.0:
-        ratio = av / v_s
-        if alpha == 2.0:
-            g = math.exp(-ratio * ratio)
-        elif alpha == 1.0:
-            g = math.exp(-ratio)
-        else:
-            g = math.exp(-math.exp(alpha * math.log(ratio)))
-    else:
-        g = 1.0
-    return (F_C + (F_S - F_C) * g) * direction + b_v * v
+    return stribeck_level(abs(v), F_S, F_C, v_s, alpha) * direction + b_v * v
 
 
 #: Lowest speed, as a fraction of v_s, at which the Stribeck slope is evaluated: for alpha < 1 the

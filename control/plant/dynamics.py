@@ -21,6 +21,21 @@ Chambers, Eqs. (5)-(6)
     T0 (the paper's assumption). ``mdot_i`` is the net inflow: the chamber's two valves by
     ISO 6358 (Eq. 7, reverse flow included) and the optional seal leak A<->B (ISO 6358 form,
     b = 0).
+Real-rig effects (contract 2; each off by default, and then the model above is computed by
+exactly the code it had before they existed)
+    *Valve armature lag*: after its switching delay a valve's open fraction moves
+    exponentially (``tau_open``/``tau_close``) and scales its Eq. (7) flow. *Lines*: a transport
+    delay added to the chamber's valves' delays, a volume added to its dead volume, and a
+    conductance in series with its valves, met at a junction of negligible volume solved
+    quasi-statically. *Heat transfer*: chamber temperatures as states, the energy equation with
+    ``gamma`` and wall convection ``h`` instead of the polytropic exponent. *Pre-sliding*: LuGre
+    friction (bristle deflection z as a state) whose steady sliding is Eq. (2); no stick events,
+    the end stops still hold the piston. *Sensor lags*: first-order lags of the position and
+    pressure readings, integrated along the trajectory, and a pressure quantum. *IO delay*: duty
+    writes wait in the state and act later. *Supply droop*: a supply line of conductance C into a
+    manifold whose pressure (a state) feeds the inlet valves and the supply transmitter.
+    :func:`_deriv` is the paper's right-hand side; :func:`_deriv_rig` adds the effects, and
+    :func:`_step` picks between them once per step.
 Integration
     Classical RK4 with steps of at most ``sim.dt``, split at every valve switching instant,
     controller sample and force step, so that the right-hand side is smooth inside every step.
@@ -42,9 +57,14 @@ import numpy as np
 from numba import njit
 
 from pneutune.control.logs.topics import topic_fields
-from pneutune.control.physics.flow import iso6358_flow, signed_flow
-from pneutune.control.physics.friction import stribeck_force, stribeck_stiffness
+from pneutune.control.physics.flow import iso6358_flow, signed_flow, signed_flow_t
+from pneutune.control.physics.friction import (
+    stribeck_force,
+    stribeck_level,
+    stribeck_stiffness,
+)
 from pneutune.control.plant.params import (
+    IO_MAX,
     N_STATE,
     P_AA,
     P_AB,
@@ -55,36 +75,70 @@ from pneutune.control.plant.params import (
     P_DA,
     P_DB,
     P_DT,
+    P_DTLUGRE,
     P_DTMIN,
+    P_EXTSTATE,
     P_FC,
     P_FN,
     P_FS,
+    P_GAMMA,
+    P_GENERAL,
+    P_HEAT,
+    P_HEATH,
+    P_IODELAY,
     P_LEAKC,
+    P_LINEB,
+    P_LINEC,
     P_M,
     P_N,
     P_P0,
+    P_PERIM,
+    P_PLAG,
     P_PNOISE,
+    P_PSTEP,
     P_R,
     P_RPEAK,
+    P_SIGMA0,
+    P_SIGMA1,
+    P_SUPB,
+    P_SUPC,
+    P_SUPVOL,
     P_T0,
+    P_TAUOFF,
+    P_TAUON,
     P_UFREE,
     P_V0A,
     P_V0B,
+    P_VLAG,
     P_VS,
+    P_XLAG,
     P_XMAX,
     P_XMIN,
     P_XNOISE,
     P_XSTEP,
+    S_IO,
+    S_IO_N,
     S_OPEN,
     S_PA,
+    S_PAF,
     S_PB,
+    S_PBF,
+    S_PJ,
+    S_PSF,
+    S_PSUP,
     S_STUCK,
     S_T,
+    S_TA,
+    S_TB,
+    S_TY,
     S_V,
     S_X,
+    S_XF,
+    S_Y0,
+    S_Z,
     STEP_STIFFNESS,
 )
-from pneutune.control.plant.valves import EPS_T, next_event, process_events, set_duties
+from pneutune.control.plant.valves import EPS_T, next_event, process_events, write_duty
 
 #: Columns of the truth array produced at each sample (``/sim/truth``).
 TRUTH_FIELDS = topic_fields("/sim/truth")
@@ -116,7 +170,8 @@ def _next_force_step(force_steps: np.ndarray, t: float, t_end: float) -> float:
 @njit(cache=True)
 def chamber_flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float,
                   p_s: float) -> tuple[float, float]:
-    """Net mass flows into chambers A and B [kg/s] with the valves as they are in ``s``."""
+    """Net mass flows into chambers A and B [kg/s] with the valves as they are in ``s``
+    (the paper's model: every valve fully open or closed, straight into its chamber)."""
     T0 = p[P_T0]
     p0 = p[P_P0]
     ma = 0.0
@@ -134,6 +189,143 @@ def chamber_flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float,
         ma -= leak
         mb += leak
     return ma, mb
+
+
+@njit(cache=True)
+def open_fraction(p: np.ndarray, s: np.ndarray, i: int, t: float) -> float:
+    """How far valve ``i`` is open at time ``t``, 0..1.
+
+    Without armature time constants it is the switching state (0 or 1). With them, from the
+    last transition at ``s[S_TY + i]`` the fraction moves exponentially from where it was then
+    (``s[S_Y0 + i]``) towards the new state, with ``tau_open`` or ``tau_close``.
+    """
+    o = s[S_OPEN + i]
+    if p[P_VLAG] < 0.5:
+        return o
+    tau = p[P_TAUON + i] if o > 0.5 else p[P_TAUOFF + i]
+    if tau <= 0.0:
+        return o
+    r = (t - s[S_TY + i]) / tau
+    if r > 20.0:  # settled to within 2e-9: the valve is where it switched to
+        return o
+    return o + (s[S_Y0 + i] - o) * math.exp(-r)
+
+
+@njit(cache=True)
+def _enthalpy(m: float, T_in: float, T_out: float) -> float:
+    """``m`` times the temperature of the gas it carries: ``T_in`` flowing in, else ``T_out``."""
+    return m * (T_in if m > 0.0 else T_out)
+
+
+@njit(cache=True)
+def _junction_balance(p: np.ndarray, side: int, y_in: float, y_out: float, p_sup: float,
+                      pj: float, pc: float, Tc: float) -> float:
+    """Net mass flow into a line's junction at pressure ``pj`` [kg/s]: from the inlet valve,
+    less the exhaust valve's and the line's."""
+    T0 = p[P_T0]
+    i_in = 2 * side
+    f = -signed_flow_t(p[P_LINEC + side], p[P_LINEB + side], pj, pc, T0, Tc)
+    if y_in > 0.0:
+        f += y_in * signed_flow(p[P_C + i_in], p[P_B + i_in], p_sup, pj, T0)
+    if y_out > 0.0:
+        f -= y_out * signed_flow(p[P_C + i_in + 1], p[P_B + i_in + 1], pj, p[P_P0], T0)
+    return f
+
+
+@njit(cache=True)
+def _line_flow(p: np.ndarray, s: np.ndarray, side: int, y_in: float, y_out: float, p_sup: float,
+               pc: float, Tc: float) -> tuple[float, float, float]:
+    """One chamber's valves, and its line: (mass flow into the chamber, that flow times the
+    temperature it carries, mass flow drawn from the supply) [kg/s, kg K/s, kg/s].
+
+    Without a line conductance the valves feed the chamber directly. With one, the valves meet
+    the line at a junction of negligible volume (gas at T0), whose pressure balances the
+    valves' net flow against the line's: found by the Illinois variant of regula falsi on that
+    balance, which falls monotonically with the junction pressure.
+    """
+    T0 = p[P_T0]
+    p0 = p[P_P0]
+    i_in = 2 * side
+    i_out = i_in + 1
+    CL = p[P_LINEC + side]
+    if CL <= 0.0:
+        m_in = 0.0
+        m_out = 0.0
+        if y_in > 0.0:
+            m_in = y_in * signed_flow_t(p[P_C + i_in], p[P_B + i_in], p_sup, pc, T0, Tc)
+        if y_out > 0.0:
+            m_out = y_out * signed_flow_t(p[P_C + i_out], p[P_B + i_out], pc, p0, Tc, T0)
+        h = _enthalpy(m_in, T0, Tc) - _enthalpy(m_out, Tc, T0)
+        return m_in - m_out, h, m_in
+    if y_in <= 0.0 and y_out <= 0.0:
+        return 0.0, 0.0, 0.0
+    # the balance is >= 0 below every port's pressure and <= 0 above them all; the bracket
+    # starts as a narrow one around the last solution (it moves little between calls)
+    lo = min(p_sup, p0, pc)
+    hi = max(p_sup, p0, pc)
+    a, b = lo, hi
+    last = s[S_PJ + side]
+    fa = 1.0
+    fb = -1.0
+    if lo < last < hi:
+        a = max(lo, last * (1.0 - 2.0e-4))
+        b = min(hi, last * (1.0 + 2.0e-4))
+        fa = _junction_balance(p, side, y_in, y_out, p_sup, a, pc, Tc)
+        fb = _junction_balance(p, side, y_in, y_out, p_sup, b, pc, Tc)
+        if fa < 0.0:  # the solution is below the narrow bracket
+            b, fb = a, fa
+            a = lo
+            fa = _junction_balance(p, side, y_in, y_out, p_sup, a, pc, Tc)
+        elif fb > 0.0:  # above it
+            a, fa = b, fb
+            b = hi
+            fb = _junction_balance(p, side, y_in, y_out, p_sup, b, pc, Tc)
+    else:
+        fa = _junction_balance(p, side, y_in, y_out, p_sup, a, pc, Tc)
+        fb = _junction_balance(p, side, y_in, y_out, p_sup, b, pc, Tc)
+    tol = 1.0e-7 * hi  # 0.06 Pa at 6 bar: far below the sensor noise
+    pj = a
+    prev = b
+    side_ = 0
+    for _ in range(60):
+        pj = 0.5 * (a + b) if fb == fa else (a * fb - b * fa) / (fb - fa)
+        f = _junction_balance(p, side, y_in, y_out, p_sup, pj, pc, Tc)
+        if f == 0.0 or abs(pj - prev) < tol:
+            break
+        prev = pj
+        if f * fb > 0.0:
+            b, fb = pj, f
+            if side_ == -1:
+                fa *= 0.5
+            side_ = -1
+        else:
+            a, fa = pj, f
+            if side_ == 1:
+                fb *= 0.5
+            side_ = 1
+    s[S_PJ + side] = pj
+    m_line = signed_flow_t(CL, p[P_LINEB + side], pj, pc, T0, Tc)
+    m_sup = y_in * signed_flow(p[P_C + i_in], p[P_B + i_in], p_sup, pj, T0) if y_in > 0.0 else 0.0
+    return m_line, _enthalpy(m_line, T0, Tc), m_sup
+
+
+@njit(cache=True)
+def _flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float, p_sup: float, ta: float,
+           tb: float, t: float) -> tuple[float, float, float, float, float]:
+    """Flows with the real-rig effects: (into A, into B, their enthalpy terms, from the
+    supply) [kg/s, kg/s, kg K/s, kg K/s, kg/s]; ``ta``/``tb`` are T0 without heat transfer."""
+    ma, ha, msa = _line_flow(p, s, 0, open_fraction(p, s, 0, t), open_fraction(p, s, 1, t), p_sup,
+                             pa, ta)
+    mb, hb, msb = _line_flow(p, s, 1, open_fraction(p, s, 2, t), open_fraction(p, s, 3, t), p_sup,
+                             pb, tb)
+    if p[P_LEAKC] > 0.0:
+        leak = signed_flow_t(p[P_LEAKC], 0.0, pa, pb, ta, tb)
+        hl = _enthalpy(leak, ta, tb)
+        ma -= leak
+        mb += leak
+        ha -= hl
+        hb += hl
+    return ma, mb, ha, hb, msa + msb
 
 
 @njit(cache=True)
@@ -171,6 +363,68 @@ def _deriv(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: floa
 
 
 @njit(cache=True)
+def _deriv_rig(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float,
+           stuck: bool, direction: float, p_s: float, f_ext: float, t: float, ta: float,
+           tb: float, z: float,
+           psup: float) -> tuple[float, float, float, float, float, float, float, float]:
+    """:func:`_deriv` with the real-rig effects: the flows through lagging valves, lines and a
+    supply line, LuGre friction, the energy equation; and the derivatives of their states
+    [T_a, T_b, z, p_sup] (zero while an effect is off)."""
+    Va = p[P_V0A] + p[P_AA] * (x - p[P_XMIN])
+    Vb = p[P_V0B] + p[P_AB] * (p[P_XMAX] - x)
+    heat = p[P_HEAT] > 0.5
+    T0 = p[P_T0]
+    ha = 0.0
+    hb = 0.0
+    msup = 0.0
+    if p[P_GENERAL] > 0.5:
+        feed = psup if p[P_SUPC] > 0.0 else p_s
+        ma, mb, ha, hb, msup = _flows(p, s, pa, pb, feed, ta if heat else T0,
+                                      tb if heat else T0, t)
+    else:
+        ma, mb = chamber_flows(p, s, pa, pb, p_s)
+    nRT = p[P_N] * p[P_R] * p[P_T0]
+    dz = 0.0
+    if stuck:
+        dx = 0.0
+        dv = 0.0
+    elif p[P_SIGMA0] > 0.0:
+        # LuGre: the bristles' deflection z carries the friction; no direction is frozen
+        dx = v
+        av = abs(v)
+        g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA])
+        dz = v - p[P_SIGMA0] * av * z / g
+        ff = p[P_SIGMA0] * z + p[P_SIGMA1] * dz + p[P_BV] * v
+        dv = (applied_force(p, pa, pb, f_ext) - ff) / p[P_M]
+    else:  # Eq. (2), the direction frozen over the step as in _deriv
+        dx = v
+        ff = stribeck_force(v, direction, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
+        dv = (applied_force(p, pa, pb, f_ext) - ff) / p[P_M]
+    dta = 0.0
+    dtb = 0.0
+    if heat:
+        # energy equation: inflow enthalpy, compression work, wall heat; then T from m = pV/RT
+        gam = p[P_GAMMA]
+        R = p[P_R]
+        dVa = p[P_AA] * dx
+        dVb = -p[P_AB] * dx
+        qa = p[P_HEATH] * (2.0 * p[P_AA] + p[P_PERIM] * Va / p[P_AA]) * (T0 - ta)
+        qb = p[P_HEATH] * (2.0 * p[P_AB] + p[P_PERIM] * Vb / p[P_AB]) * (T0 - tb)
+        dpa = (gam * R * ha - gam * pa * dVa + (gam - 1.0) * qa) / Va + p[P_DA]
+        dpb = (gam * R * hb - gam * pb * dVb + (gam - 1.0) * qb) / Vb + p[P_DB]
+        dta = ta * (dpa / pa + dVa / Va - R * ta * ma / (pa * Va))
+        dtb = tb * (dpb / pb + dVb / Vb - R * tb * mb / (pb * Vb))
+    else:
+        dpa = (-p[P_N] * pa * p[P_AA] * dx + nRT * ma) / Va + p[P_DA]
+        dpb = (p[P_N] * pb * p[P_AB] * dx + nRT * mb) / Vb + p[P_DB]
+    dps = 0.0
+    if p[P_SUPC] > 0.0:
+        m_reg = signed_flow(p[P_SUPC], p[P_SUPB], p_s, psup, T0)
+        dps = nRT * (m_reg - msup) / p[P_SUPVOL]
+    return dx, dv, dpa, dpb, dta, dtb, dz, dps
+
+
+@njit(cache=True)
 def _rk4(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float, stuck: bool,
          direction: float, p_s: float, f_ext: float,
          h: float) -> tuple[float, float, float, float]:
@@ -190,10 +444,58 @@ def _rk4(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float,
 
 
 @njit(cache=True)
+def _rk4_rig(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float,
+             stuck: bool, direction: float, p_s: float, f_ext: float, h: float, t: float,
+             ta: float, tb: float, z: float,
+             psup: float) -> tuple[float, float, float, float, float, float, float, float]:
+    hh = 0.5 * h
+    h6 = h / 6.0
+    k1x, k1v, k1a, k1b, k1ta, k1tb, k1z, k1s = _deriv_rig(p, s, x, v, pa, pb, stuck, direction, p_s,
+                                                      f_ext, t, ta, tb, z, psup)
+    k2x, k2v, k2a, k2b, k2ta, k2tb, k2z, k2s = _deriv_rig(
+        p, s, x + hh * k1x, v + hh * k1v, pa + hh * k1a, pb + hh * k1b, stuck, direction, p_s,
+        f_ext, t + hh, ta + hh * k1ta, tb + hh * k1tb, z + hh * k1z, psup + hh * k1s)
+    k3x, k3v, k3a, k3b, k3ta, k3tb, k3z, k3s = _deriv_rig(
+        p, s, x + hh * k2x, v + hh * k2v, pa + hh * k2a, pb + hh * k2b, stuck, direction, p_s,
+        f_ext, t + hh, ta + hh * k2ta, tb + hh * k2tb, z + hh * k2z, psup + hh * k2s)
+    k4x, k4v, k4a, k4b, k4ta, k4tb, k4z, k4s = _deriv_rig(
+        p, s, x + h * k3x, v + h * k3v, pa + h * k3a, pb + h * k3b, stuck, direction, p_s,
+        f_ext, t + h, ta + h * k3ta, tb + h * k3tb, z + h * k3z, psup + h * k3s)
+    return (x + h6 * (k1x + 2.0 * (k2x + k3x) + k4x),
+            v + h6 * (k1v + 2.0 * (k2v + k3v) + k4v),
+            pa + h6 * (k1a + 2.0 * (k2a + k3a) + k4a),
+            pb + h6 * (k1b + 2.0 * (k2b + k3b) + k4b),
+            ta + h6 * (k1ta + 2.0 * (k2ta + k3ta) + k4ta),
+            tb + h6 * (k1tb + 2.0 * (k2tb + k3tb) + k4tb),
+            z + h6 * (k1z + 2.0 * (k2z + k3z) + k4z),
+            psup + h6 * (k1s + 2.0 * (k2s + k3s) + k4s))
+
+
+
+
+@njit(cache=True, inline="always")
+def _step(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float, stuck: bool,
+          direction: float, p_s: float, f_ext: float, h: float, t: float, ta: float, tb: float,
+          z: float,
+          psup: float) -> tuple[float, float, float, float, float, float, float, float]:
+    """One RK4 step of ``h`` from time ``t``: of the paper's model (:func:`_deriv`) when no
+    real-rig effect acts on the derivatives, else of :func:`_deriv_rig`."""
+    if p[P_GENERAL] < 0.5 and p[P_EXTSTATE] < 0.5:
+        x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, stuck, direction, p_s, f_ext, h)
+        return x1, v1, pa1, pb1, ta, tb, z, psup
+    return _rk4_rig(p, s, x, v, pa, pb, stuck, direction, p_s, f_ext, h, t, ta, tb, z, psup)
+
+
+@njit(cache=True)
 def _stick_limits(p: np.ndarray, x: float) -> tuple[float, float]:
-    """Range of applied force for which a piston at rest at ``x`` stays at rest [N]."""
-    lo = -p[P_FS]
-    hi = p[P_FS]
+    """Range of applied force for which a piston at rest at ``x`` stays at rest [N].
+
+    With LuGre friction the piston never sticks in mid-stroke (the bristles let it creep), so
+    only an end stop holds it, against any force that pushes it into the stop.
+    """
+    fs = 0.0 if p[P_SIGMA0] > 0.0 else p[P_FS]
+    lo = -fs
+    hi = fs
     if x >= p[P_XMAX] - 1.0e-12:
         hi = np.inf
     if x <= p[P_XMIN] + 1.0e-12:
@@ -203,7 +505,8 @@ def _stick_limits(p: np.ndarray, x: float) -> tuple[float, float]:
 
 @njit(cache=True)
 def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float, d: float,
-            p_s: float, f_ext: float, h: float, comp: int, target: float, end: float) -> float:
+            p_s: float, f_ext: float, h: float, comp: int, target: float, end: float,
+            t: float, ta: float, tb: float, z: float, psup: float) -> float:
     """Fraction of the step ``h`` at which the RK4 solution's component ``comp`` (0: x, 1: v)
     reaches ``target``; ``end`` is its value after the whole step.
 
@@ -219,7 +522,8 @@ def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: flo
     tol = 1.0e-12 if comp == 0 else 1.0e-10
     for _ in range(40):
         c = (a * fb - b * fa) / (fb - fa)
-        xc, vc, _, _ = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, c * h)
+        xc, vc, _, _, _, _, _, _ = _step(p, s, x, v, pa, pb, False, d, p_s, f_ext, c * h, t, ta,
+                                        tb, z, psup)
         fc = (xc if comp == 0 else vc) - target
         if abs(fc) < tol or (b - a) * h < 1.0e-13:
             break
@@ -244,6 +548,44 @@ def _sliding_step(p: np.ndarray, u: float) -> float:
 
 
 @njit(cache=True)
+def _lugre_step(p: np.ndarray, v: float) -> float:
+    """Longest RK4 step with LuGre friction at speed ``v`` [s]: the bristles' mode
+    (``P_DTLUGRE``) and their relaxation rate ``sigma0 |v| / g(v)``."""
+    h = p[P_DTLUGRE]
+    av = abs(v)
+    if av > 0.0:
+        g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA])
+        h_z = STEP_STIFFNESS * g / (p[P_SIGMA0] * av)
+        if h_z < h:
+            h = h_z
+    return h
+
+
+@njit(cache=True)
+def _lagged(y0: float, u0: float, u1: float, h: float, tau: float) -> float:
+    """A first-order lag ``tau dy/dt = u - y`` over ``h``, its input moving linearly from ``u0``
+    to ``u1`` (exact for that input)."""
+    if tau <= 0.0:
+        return u1
+    r = h / tau
+    if r < 1.0e-6:
+        return y0 + r * (0.5 * (u0 + u1) - y0)
+    a = math.exp(-r)
+    return a * y0 + (1.0 - a) * u0 + (u1 - u0) * (1.0 - (1.0 - a) / r)
+
+
+@njit(cache=True)
+def _lag_sensors(p: np.ndarray, s: np.ndarray, h: float, x0: float, pa0: float, pb0: float,
+                 ps0: float, x1: float, pa1: float, pb1: float, ps1: float) -> None:
+    """Move the lagged sensor states over a step of ``h`` along the true values."""
+    s[S_XF] = _lagged(s[S_XF], x0, x1, h, p[P_XLAG])
+    tau = p[P_PLAG]
+    s[S_PAF] = _lagged(s[S_PAF], pa0, pa1, h, tau)
+    s[S_PBF] = _lagged(s[S_PBF], pb0, pb1, h, tau)
+    s[S_PSF] = _lagged(s[S_PSF], ps0, ps1, h, tau)
+
+
+@njit(cache=True)
 def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: float) -> None:
     """Integrate ``s`` over ``h_total`` seconds with the valves as they are (no events inside)."""
     dt = p[P_DT]
@@ -251,29 +593,44 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
     if nsteps < 1:
         nsteps = 1
     h = h_total / nsteps
+    lugre = p[P_SIGMA0] > 0.0
     # friction can limit the step only where the plant's stiffest point needs less than h
     h_min = p[P_DTMIN]
-    stiff = h_min < h
+    stiff = h_min < h and not lugre
     u_free = p[P_UFREE]  # above this speed only the viscous mode limits the step, to h_visc
     h_visc = STEP_STIFFNESS * p[P_M] / p[P_BV] if p[P_BV] > 0.0 else np.inf
     max_steps = nsteps
     if stiff:
         max_steps = max(nsteps, math.ceil(h_total / h_min - 1.0e-9))
+    if lugre:
+        max_steps = max(nsteps, math.ceil(h_total / _lugre_step(p, 10.0) - 1.0e-9))
     x, v, pa, pb = s[S_X], s[S_V], s[S_PA], s[S_PB]
+    ta, tb, z, psup = s[S_TA], s[S_TB], s[S_Z], s[S_PSUP]
+    t0 = s[S_T]
     stuck = s[S_STUCK] > 0.5
     xmin, xmax = p[P_XMIN], p[P_XMAX]
+    # the lagged sensors follow the true values from one committed state to the next
+    lag = p[P_XLAG] > 0.0 or p[P_PLAG] > 0.0
+    supply = p[P_SUPC] > 0.0
+    xq, paq, pbq, psq, remq = x, pa, pb, psup if supply else p_s, h_total
     remaining = h_total
     guard = 0
     while remaining > 1.0e-13 and guard < 4 * max_steps + 64:
         guard += 1
+        if lag and remq - remaining > 0.0:
+            ps_now = psup if supply else p_s
+            _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, pa, pb, ps_now)
+            xq, paq, pbq, psq, remq = x, pa, pb, ps_now, remaining
+        t = t0 + (h_total - remaining)
         step = h if h < remaining else remaining
         if stuck:
-            x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, True, 0.0, p_s, f_ext, step)
+            x1, v1, pa1, pb1, ta1, tb1, z1, ps1 = _step(p, s, x, v, pa, pb, True, 0.0, p_s,
+                                                      f_ext, step, t, ta, tb, z, psup)
             lo, hi = _stick_limits(p, x)
             f0 = applied_force(p, pa, pb, f_ext)
             f1 = applied_force(p, pa1, pb1, f_ext)
             if lo <= f1 <= hi:
-                pa, pb = pa1, pb1
+                pa, pb, ta, tb, psup = pa1, pb1, ta1, tb1, ps1
                 remaining -= step
                 continue
             # break-away inside the step: locate it, integrate to it, start sliding
@@ -284,7 +641,8 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
                 frac = min(max((thr - f0) / (f1 - f0), 0.0), 1.0)
             sub = frac * step
             if sub > 1.0e-12:
-                x1, v1, pa, pb = _rk4(p, s, x, v, pa, pb, True, 0.0, p_s, f_ext, sub)
+                x1, v1, pa, pb, ta, tb, z1, psup = _step(p, s, x, v, pa, pb, True, 0.0, p_s,
+                                                        f_ext, sub, t, ta, tb, z, psup)
             stuck = False
             v = 0.0
             remaining -= sub
@@ -296,7 +654,12 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
             h_ok = _sliding_step(p, abs(v)) if abs(v) < u_free else h_visc
             if h_ok < step:  # split what is left evenly (no sliver of a step at the end)
                 step = remaining / math.ceil(remaining / h_ok - 1.0e-9)
-        x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, step)
+        elif lugre:
+            h_ok = _lugre_step(p, v)
+            if h_ok < step:
+                step = remaining / math.ceil(remaining / h_ok - 1.0e-9)
+        x1, v1, pa1, pb1, ta1, tb1, z1, ps1 = _step(p, s, x, v, pa, pb, False, d, p_s, f_ext,
+                                                  step, t, ta, tb, z, psup)
         if stiff and (abs(v) < u_free or abs(v1) < u_free or v1 * d <= 0.0):
             # the step must suit the slowest speed it reached; else take it again, shorter
             for _ in range(8):
@@ -305,11 +668,13 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
                 if step <= h_ok * (1.0 + 1.0e-12):
                     break
                 step = remaining / math.ceil(remaining / h_ok - 1.0e-9)
-                x1, v1, pa1, pb1 = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, step)
+                x1, v1, pa1, pb1, ta1, tb1, z1, ps1 = _step(p, s, x, v, pa, pb, False, d, p_s,
+                                                          f_ext, step, t, ta, tb, z, psup)
         hit_stop = x1 > xmax or x1 < xmin
-        reversed_ = (v1 * d) <= 0.0
+        # with LuGre friction a velocity through zero is no event: the bristles carry it
+        reversed_ = (v1 * d) <= 0.0 and not lugre
         if not hit_stop and not reversed_:
-            x, v, pa, pb = x1, v1, pa1, pb1
+            x, v, pa, pb, ta, tb, z, psup = x1, v1, pa1, pb1, ta1, tb1, z1, ps1
             remaining -= step
             continue
         # an event inside the step: the earlier of the stop contact and the velocity zero
@@ -317,19 +682,23 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
         edge = xmax
         if hit_stop:
             edge = xmax if x1 > xmax else xmin
-            frac = _locate(p, s, x, v, pa, pb, d, p_s, f_ext, step, 0, edge, x1)
+            frac = _locate(p, s, x, v, pa, pb, d, p_s, f_ext, step, 0, edge, x1, t, ta, tb, z,
+                           psup)
         if reversed_ and v1 != v:
-            fv = _locate(p, s, x, v, pa, pb, d, p_s, f_ext, step, 1, 0.0, v1)
+            fv = _locate(p, s, x, v, pa, pb, d, p_s, f_ext, step, 1, 0.0, v1, t, ta, tb, z,
+                         psup)
             if fv < frac:
                 frac = fv
                 hit_stop = False
         frac = min(max(frac, 0.0), 1.0)
         sub = frac * step
         if sub > 1.0e-12:
-            x, v, pa, pb = _rk4(p, s, x, v, pa, pb, False, d, p_s, f_ext, sub)
+            x, v, pa, pb, ta, tb, z, psup = _step(p, s, x, v, pa, pb, False, d, p_s, f_ext, sub,
+                                                 t, ta, tb, z, psup)
         remaining -= sub
         if hit_stop:
             x = edge  # located to 1e-12 m; land exactly on the stop
+            z = 0.0  # the stop takes the load off the seal's bristles
         elif x > xmax:
             x = xmax
         elif x < xmin:
@@ -342,11 +711,81 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
         elif sub <= 1.0e-12:
             # zero velocity at the start of the step and still pushed on: slide the whole step
             d2 = 1.0 if f_at > 0.0 else -1.0
-            x1, v1, pa1, pb1 = _rk4(p, s, x, 0.0, pa, pb, False, d2, p_s, f_ext, step)
-            x, v, pa, pb = x1, v1, pa1, pb1
+            x1, v1, pa1, pb1, ta1, tb1, z1, ps1 = _step(p, s, x, 0.0, pa, pb, False, d2, p_s,
+                                                      f_ext, step, t, ta, tb, z, psup)
+            x, v, pa, pb, ta, tb, z, psup = x1, v1, pa1, pb1, ta1, tb1, z1, ps1
             remaining -= step
+    if lag and remq - remaining > 0.0:
+        _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, pa, pb,
+                     psup if supply else p_s)
     s[S_X], s[S_V], s[S_PA], s[S_PB] = x, v, pa, pb
+    s[S_TA], s[S_TB], s[S_Z], s[S_PSUP] = ta, tb, z, psup
     s[S_STUCK] = 1.0 if stuck else 0.0
+
+
+@njit(cache=True, inline="always")
+def _switch(p: np.ndarray, s: np.ndarray, t: float) -> None:
+    """The valves' events at ``t`` (:func:`~pneutune.control.plant.valves.process_events`);
+    with armature time constants, a valve that switches starts its lag from where it is."""
+    if p[P_VLAG] < 0.5:
+        process_events(p, s, t)
+        return
+    y = np.empty(4)
+    o = np.empty(4)
+    for i in range(4):
+        y[i] = open_fraction(p, s, i, t)
+        o[i] = s[S_OPEN + i]
+    process_events(p, s, t)
+    for i in range(4):
+        if s[S_OPEN + i] != o[i]:
+            s[S_Y0 + i] = y[i]
+            s[S_TY + i] = t
+
+
+@njit(cache=True)
+def _write(p: np.ndarray, s: np.ndarray, duties: np.ndarray) -> None:
+    for i in range(4):
+        write_duty(p, s, i, duties[i])
+
+
+@njit(cache=True)
+def _release_writes(p: np.ndarray, s: np.ndarray, t: float) -> None:
+    """Write the duties whose IO delay has passed by ``t`` (oldest first)."""
+    n = int(s[S_IO_N])
+    k = 0
+    while k < n and s[S_IO + 5 * k] <= t + EPS_T:
+        _write(p, s, s[S_IO + 5 * k + 1:S_IO + 5 * k + 5])
+        k += 1
+    if k > 0:
+        for j in range(5 * (n - k)):
+            s[S_IO + j] = s[S_IO + 5 * k + j]
+        s[S_IO_N] = n - k
+
+
+@njit(cache=True)
+def set_duties(p: np.ndarray, s: np.ndarray, t: float, duties: np.ndarray) -> None:
+    """Write the four commanded duties at time ``t`` (clipped to 0..1; NaN counts as 0).
+
+    Without an IO delay they act at once (:func:`~pneutune.control.plant.valves.set_duties`).
+    With one (``io.delay``), they wait in the state and act that much later, inside
+    :func:`advance`; if more writes wait than the state holds, the oldest acts now.
+    """
+    if p[P_IODELAY] <= 0.0:
+        _write(p, s, duties)
+        _switch(p, s, t)
+        return
+    n = int(s[S_IO_N])
+    if n == IO_MAX:
+        _write(p, s, s[S_IO + 1:S_IO + 5])
+        _switch(p, s, t)
+        for j in range(5 * (n - 1)):
+            s[S_IO + j] = s[S_IO + 5 + j]
+        n -= 1
+    base = S_IO + 5 * n
+    s[base] = t + p[P_IODELAY]
+    for i in range(4):
+        s[base + 1 + i] = duties[i]
+    s[S_IO_N] = n + 1
 
 
 @njit(cache=True)
@@ -354,8 +793,8 @@ def advance(p: np.ndarray, s: np.ndarray, t_end: float, p_s: float,
             force_steps: np.ndarray) -> None:
     """Advance the plant state ``s`` from its clock ``s[S_T]`` to ``t_end``.
 
-    Valve switching, PWM edges and force steps inside the interval are handled exactly: the
-    integration stops at each of them.
+    Valve switching, PWM edges, force steps and delayed duty writes inside the interval are
+    handled exactly: the integration stops at each of them.
 
     Parameters
     ----------
@@ -366,20 +805,29 @@ def advance(p: np.ndarray, s: np.ndarray, t_end: float, p_s: float,
     t_end : float
         Time to stop at [s].
     p_s : float
-        Supply pressure over the interval [Pa abs].
+        Supply pressure over the interval [Pa abs] (upstream of the supply line, if any).
     force_steps : ndarray
         (K, 2) external force levels [[t, F], ...].
     """
     t = s[S_T]
+    if p[P_SUPC] > 0.0 and s[S_PSUP] <= 0.0:
+        s[S_PSUP] = p_s  # the manifold starts charged
+    if p[P_PLAG] > 0.0 and s[S_PSF] <= 0.0:
+        s[S_PSF] = s[S_PSUP] if p[P_SUPC] > 0.0 else p_s
+    io = p[P_IODELAY] > 0.0
     while t < t_end - EPS_T:
         t_next = next_event(p, s, t, t_end)
         t_next = _next_force_step(force_steps, t, t_next)
+        if io and s[S_IO_N] > 0.5 and s[S_IO] < t_next:
+            t_next = max(s[S_IO], t)
         if t_next - t > EPS_T:
             f_ext = external_force(p, force_steps, t)
             _integrate(p, s, t_next - t, p_s, f_ext)
         t = t_next
         s[S_T] = t
-        process_events(p, s, t)
+        if io:
+            _release_writes(p, s, t)
+        _switch(p, s, t)
     s[S_T] = t_end
 
 
@@ -388,21 +836,35 @@ def truth(p: np.ndarray, s: np.ndarray, p_s: float, force_steps: np.ndarray,
           out: np.ndarray) -> None:
     """Fill ``out`` with the true [v, a, F_friction, F_ext, mdot_a, mdot_b] at the current time.
 
-    ``F_friction`` is F_f of Eq. (1): the Stribeck force while sliding, the applied force while
-    stuck (Eq. 2's F_e), and at an end stop the part of the applied force that friction can
-    hold (at most F_S); the stop takes the rest.
+    ``F_friction`` is F_f of Eq. (1): the Stribeck force while sliding (LuGre's, with
+    pre-sliding), the applied force while stuck (Eq. 2's F_e), and at an end stop the part of
+    the applied force that friction can hold (at most F_S); the stop takes the rest.
     """
     x, v, pa, pb = s[S_X], s[S_V], s[S_PA], s[S_PB]
-    f_ext = external_force(p, force_steps, s[S_T])
+    t = s[S_T]
+    f_ext = external_force(p, force_steps, t)
     stuck = s[S_STUCK] > 0.5
     f_app = applied_force(p, pa, pb, f_ext)
     d = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else (1.0 if f_app > 0.0 else -1.0))
-    _, dv, _, _ = _deriv(p, s, x, v, pa, pb, stuck, d, p_s, f_ext)
+    psup = s[S_PSUP] if s[S_PSUP] > 0.0 else p_s
+    pj_a, pj_b = s[S_PJ], s[S_PJ + 1]  # the lines' solver starts from these: keep them
+    if p[P_GENERAL] < 0.5 and p[P_EXTSTATE] < 0.5:
+        _, dv, _, _ = _deriv(p, s, x, v, pa, pb, stuck, d, p_s, f_ext)
+    else:
+        _, dv, _, _, _, _, _, _ = _deriv_rig(p, s, x, v, pa, pb, stuck, d, p_s, f_ext, t,
+                                             s[S_TA], s[S_TB], s[S_Z], psup)
+        s[S_PJ], s[S_PJ + 1] = pj_a, pj_b
     if stuck:
         ff = min(max(f_app, -p[P_FS]), p[P_FS])
     else:
         ff = f_app - p[P_M] * dv
-    ma, mb = chamber_flows(p, s, pa, pb, p_s)
+    if p[P_GENERAL] > 0.5:
+        heat = p[P_HEAT] > 0.5
+        ma, mb, _, _, _ = _flows(p, s, pa, pb, psup if p[P_SUPC] > 0.0 else p_s,
+                                 s[S_TA] if heat else p[P_T0], s[S_TB] if heat else p[P_T0], t)
+        s[S_PJ], s[S_PJ + 1] = pj_a, pj_b  # looking leaves the state as it was
+    else:
+        ma, mb = chamber_flows(p, s, pa, pb, p_s)
     out[0], out[1], out[2], out[3], out[4], out[5] = v, dv, ff, f_ext, ma, mb
 
 
@@ -411,17 +873,34 @@ def measure(p: np.ndarray, s: np.ndarray, p_s: float, noise: np.ndarray,
             out: np.ndarray) -> None:
     """Fill ``out`` with the sensor readings [x, p_a, p_b, p_s].
 
-    ``noise`` holds four standard-normal draws. Position: true x plus ``x_noise`` times a draw,
-    then rounded to the ``x_step`` quantum. Pressures: true value plus ``p_noise`` times a draw.
+    ``noise`` holds four standard-normal draws. Position: true x (lagged by ``x_lag``) plus
+    ``x_noise`` times a draw, then rounded to the ``x_step`` quantum. Pressures: true value
+    (lagged by ``p_lag``; the supply reading is the manifold's with a supply line) plus
+    ``p_noise`` times a draw, then rounded to the ``p_step`` quantum.
     """
-    xm = s[S_X] + p[P_XNOISE] * noise[0]
+    x = s[S_X]
+    pa = s[S_PA]
+    pb = s[S_PB]
+    ps = s[S_PSUP] if p[P_SUPC] > 0.0 and s[S_PSUP] > 0.0 else p_s
+    if p[P_XLAG] > 0.0:
+        x = s[S_XF]
+    if p[P_PLAG] > 0.0:
+        pa = s[S_PAF]
+        pb = s[S_PBF]
+        if s[S_PSF] > 0.0:
+            ps = s[S_PSF]
+    xm = x + p[P_XNOISE] * noise[0]
     q = p[P_XSTEP]
     if q > 0.0:
         xm = q * math.floor(xm / q + 0.5)
     out[0] = xm
-    out[1] = s[S_PA] + p[P_PNOISE] * noise[1]
-    out[2] = s[S_PB] + p[P_PNOISE] * noise[2]
-    out[3] = p_s + p[P_PNOISE] * noise[3]
+    out[1] = pa + p[P_PNOISE] * noise[1]
+    out[2] = pb + p[P_PNOISE] * noise[2]
+    out[3] = ps + p[P_PNOISE] * noise[3]
+    qp = p[P_PSTEP]
+    if qp > 0.0:
+        for j in range(1, 4):
+            out[j] = qp * math.floor(out[j] / qp + 0.5)
 
 
 @njit(cache=True)
@@ -465,6 +944,12 @@ def initial_state(p: np.ndarray, x0: float, p_a0: float, p_b0: float,
     s[S_X], s[S_V], s[S_PA], s[S_PB] = x0, 0.0, p_a0, p_b0
     s[S_STUCK] = 1.0
     s[S_T] = t0
+    # the real-rig effects' states: gas at T0, valves closed since t0, sensors settled
+    s[S_TA] = p[P_T0]
+    s[S_TB] = p[P_T0]
+    for i in range(4):
+        s[S_TY + i] = t0
+    s[S_XF], s[S_PAF], s[S_PBF] = x0, p_a0, p_b0
     return s
 
 
@@ -506,6 +991,7 @@ __all__ = [
     "initial_state",
     "iso6358_flow",
     "measure",
+    "open_fraction",
     "run_open_loop",
     "set_duties",
     "truth",

@@ -26,7 +26,20 @@ P_LEAKC, P_FN, P_DA, P_DB, P_DT, P_XNOISE, P_XSTEP, P_PNOISE = range(39, 47)
 P_DTMIN = 47  # the step the steepest sliding friction needs, <= P_DT (set_step_limits) [s]
 P_RPEAK = 48  # where the Stribeck slope peaks, |v|/v_s (physics.friction.stribeck_peak) [-]
 P_UFREE = 49  # above this speed only b_v may shorten the step (set_step_limits) [m/s]
-N_PARAMS = 50
+# Real-rig effects (contract 2's valves.*.tau_*, lines, heat, friction.sigma*, sensors lags,
+# io, supply); each is off at 0 and then leaves the paper's model untouched.
+P_TAUON = 50  # 4 slots: armature opening time constant [s]
+P_TAUOFF = 54  # 4 slots: armature closing time constant [s]
+P_VLAG = 58  # 1.0 when any valve has a time constant (the open fractions are lagged)
+P_LINEC = 59  # 2 slots (A, B): line conductance [m^3/(s Pa)], 0 = no restriction
+P_LINEB = 61  # 2 slots: line critical pressure ratio [-]
+P_HEAT, P_HEATH, P_GAMMA, P_PERIM = range(63, 67)  # energy eq. on, h, gamma, bore perimeter
+P_SIGMA0, P_SIGMA1, P_DTLUGRE = range(67, 70)  # LuGre; the step its bristles allow [s]
+P_XLAG, P_PLAG, P_PSTEP, P_IODELAY = range(70, 74)
+P_SUPC, P_SUPB, P_SUPVOL = range(74, 77)  # supply line (0 conductance: a stiff supply)
+P_GENERAL = 77  # 1.0 when the flows need more than Eq. (7) per valve (lag, line, heat, supply)
+P_EXTSTATE = 78  # 1.0 when states beyond the paper's are integrated (heat, LuGre, supply)
+N_PARAMS = 79
 #: RK4 keeps ``h * stiffness / M`` at most this (its stability limit on the real axis is 2.79).
 STEP_STIFFNESS: float = 1.4
 
@@ -92,6 +105,43 @@ def set_step_limits(v: np.ndarray) -> None:
         v[P_UFREE] = hi
 
 
+def _pack_effects(cfg: PlantConfig, v: np.ndarray) -> None:
+    """Fill the real-rig effect slots; every one left at 0 keeps the paper's model exactly.
+
+    The line's transport delay adds to the switching delays of its chamber's valves and its
+    volume to the chamber's dead volume (a zero adds nothing, bit for bit).
+    """
+    for i, valve in enumerate(cfg.valves.ordered()):
+        v[P_TAUON + i], v[P_TAUOFF + i] = valve.tau_open, valve.tau_close
+        line = cfg.lines.a if i < 2 else cfg.lines.b
+        v[P_DON + i] += line.delay
+        v[P_DOFF + i] += line.delay
+    v[P_VLAG] = 1.0 if np.any(v[P_TAUON:P_TAUON + 8] > 0.0) else 0.0
+    v[P_V0A] += cfg.lines.a.volume
+    v[P_V0B] += cfg.lines.b.volume
+    for j, line in enumerate((cfg.lines.a, cfg.lines.b)):
+        v[P_LINEC + j] = 0.0 if line.C is None else line.C
+        v[P_LINEB + j] = line.b
+    if cfg.heat.h is not None:
+        v[P_HEAT], v[P_HEATH], v[P_GAMMA] = 1.0, cfg.heat.h, cfg.heat.gamma
+    v[P_PERIM] = 2.0 * np.sqrt(np.pi * cfg.rig.A_a)  # pi times the bore
+    f = cfg.friction
+    v[P_SIGMA0], v[P_SIGMA1] = f.sigma0, f.sigma1
+    if f.sigma0 > 0.0:
+        # the bristles' spring-mass mode (omega h <= 0.5) and their damping with the viscous
+        # term (h (sigma1 + b_v) / M <= STEP_STIFFNESS) bound the step
+        v[P_DTLUGRE] = min(v[P_DT], 0.5 * np.sqrt(v[P_M] / f.sigma0),
+                           STEP_STIFFNESS * v[P_M] / max(f.sigma1 + f.b_v, 1.0e-12))
+    s = cfg.sensors
+    v[P_XLAG], v[P_PLAG], v[P_PSTEP] = s.x_lag, s.p_lag, s.p_step
+    v[P_IODELAY] = cfg.io.delay
+    if cfg.supply.C is not None:
+        v[P_SUPC], v[P_SUPB], v[P_SUPVOL] = cfg.supply.C, cfg.supply.b, cfg.supply.volume
+    general = v[P_VLAG] + v[P_LINEC] + v[P_LINEC + 1] + v[P_HEAT] + v[P_SUPC] > 0.0
+    v[P_GENERAL] = 1.0 if general else 0.0
+    v[P_EXTSTATE] = 1.0 if v[P_HEAT] + v[P_SIGMA0] + v[P_SUPC] > 0.0 else 0.0
+
+
 def pack_plant(cfg: PlantConfig) -> PlantParams:
     """Pack a validated plant configuration into a :class:`PlantParams`.
 
@@ -124,6 +174,7 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     set_step_limits(v)
     s = cfg.sensors
     v[P_XNOISE], v[P_XSTEP], v[P_PNOISE] = s.x_noise, s.x_step, s.p_noise
+    _pack_effects(cfg, v)
     v.setflags(write=False)
     steps = np.array(d.force_steps, dtype=np.float64).reshape(-1, 2)
     steps.setflags(write=False)
@@ -143,4 +194,15 @@ S_NPEND = 26  # 4 slots: number of pending valve transitions
 PEND_MAX = 16  # pending transitions per valve (sorted by time)
 S_PEND_T = 30  # 4 * PEND_MAX slots: transition times [s]
 S_PEND_V = S_PEND_T + 4 * PEND_MAX  # 4 * PEND_MAX slots: target state (0/1)
-N_STATE = S_PEND_V + 4 * PEND_MAX
+# Real-rig effects' states (untouched while the effect is off)
+S_Y0 = S_PEND_V + 4 * PEND_MAX  # 4 slots: lagged open fraction at the last valve transition
+S_TY = S_Y0 + 4  # 4 slots: time of that transition [s]
+S_TA, S_TB = S_TY + 4, S_TY + 5  # chamber gas temperatures [K] (heat transfer)
+S_Z = S_TY + 6  # LuGre bristle deflection [m]
+S_PSUP = S_TY + 7  # supply manifold pressure [Pa abs] (0: not yet set, takes the supply)
+S_XF, S_PAF, S_PBF, S_PSF = range(S_TY + 8, S_TY + 12)  # lagged sensor readings
+S_PJ = S_TY + 12  # 2 slots: the lines' junction pressures last found (0: none yet) [Pa abs]
+S_IO_N = S_TY + 14  # number of duty writes waiting for the IO delay
+IO_MAX = 128  # writes that may wait: io.delay <= 10 ms over rig.Ts >= 0.1 ms, one per sample
+S_IO = S_IO_N + 1  # IO_MAX x 5 slots: [time it acts, 4 duties]
+N_STATE = S_IO + 5 * IO_MAX
