@@ -53,9 +53,10 @@ def variant(paper: ControllerConfig, kind: str) -> ControllerConfig:
 def main() -> int:
     """Print the table."""
     paper = load_controller(fleet.PAPER)
-    plants = {"the paper's rig": PlantConfig(), "fleet plant 0": fleet.fleet_plant(0),
-              "fleet plant 1 (latched)": fleet.fleet_plant(1),
-              "fleet plant 2": fleet.fleet_plant(2)}
+    plants = {"the paper's rig": PlantConfig(),
+              "fleet plant 0": fleet.fleet_plant(0, effects=False),
+              "fleet plant 1 (latched)": fleet.fleet_plant(1, effects=False),
+              "fleet plant 2": fleet.fleet_plant(2, effects=False)}
     print("mean E_p [mm] over seeds 1-3: " + " / ".join(SCORED))
     for name, plant in plants.items():
         for kind in ("up", "nearest", "down"):

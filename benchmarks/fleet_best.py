@@ -40,7 +40,8 @@ def target_ratio(e_p: dict[str, float]) -> float:
 def _job(args: tuple[str, int, int]) -> tuple[str, int, dict[str, float] | None, str]:
     path, plant, seed = args
     try:
-        e_p, _ = score(Path(path), fleet_plant(plant, seed), 1000 + plant)
+        e_p, _, _ = score(Path(path), fleet_plant(plant, seed, effects=False),
+                          (1000 + plant,))
     except Exception as exc:  # an old controller.yaml the current contract refuses
         return path, plant, None, f"{type(exc).__name__}: {str(exc)[:120]}"
     return path, plant, {k: float(v) for k, v in e_p.items()}, ""

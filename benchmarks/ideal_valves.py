@@ -86,7 +86,7 @@ def tune_and_score(i: int, tag: str, plant: PlantConfig, seed: int, trials: int,
         print(f"plant {i} {tag} seed {seed}: tune exit {proc.returncode}: "
               f"{proc.stderr.strip().splitlines()[-1:]}")
         return None
-    tuned, _ = score(work / "tune" / "controller.yaml", plant, 1000 + i)
+    tuned, _, _ = score(work / "tune" / "controller.yaml", plant, (1000 + i,))
     return tuned
 
 
@@ -106,10 +106,10 @@ def main() -> int:
     print("E_p [mm] tuned / paper's gains: " + " | ".join(SCORED))
     summary: list[tuple[str, np.ndarray]] = []
     for i in (int(k) for k in args.plants.split(",")):
-        for tag, plant in variants(fleet_plant(i, args.seed)).items():
+        for tag, plant in variants(fleet_plant(i, args.seed, effects=False)).items():
             if args.only and tag not in args.only.split(","):
                 continue
-            paper, _ = score(PAPER, plant, 1000 + i)
+            paper, _, _ = score(PAPER, plant, (1000 + i,))
             label = f"plant {i} ({plant.rig.pwm_update if tag != 'immediate' else 'latched'}) {tag}"
             rows = []
             for seed in seeds:

@@ -30,7 +30,7 @@ DUTIES = np.linspace(0.0, 1.0, 201)
 
 def curve_errors(model_path: Path, plant_index: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Per valve, the mean |model curve - true curve| of its own curve and of the shared one."""
-    plant = fleet_plant(plant_index, seed)
+    plant = fleet_plant(plant_index, seed, effects=False)
     model = load_model(model_path)
     shared = np.interp(DUTIES, model.pwm.duty, model.pwm.ratio)
     own, common = [], []
