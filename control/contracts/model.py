@@ -7,6 +7,8 @@ The contract's keys keep their names and meanings; pneutune adds (documented in 
 * ``friction.ranges``: [lo, hi] per Stribeck parameter;
 * ``mass_range``, ``leak``, ``sensors`` (noise levels seen in the log), ``notes`` (what was not
   identifiable and why);
+* ``effects``: real-rig effects (IO delay, sensor lags, valve armature lags) by their plant.yaml
+  key, each a nominal value and the range tune's plant draws sample;
 * ``source`` is the contract's mapping (log, sha256, duration_s) for a model identified from one
   log, and a list of such mappings, one per log, for a model fitted to several logs of one rig
   (``identify A.mcap B.mcap``); :attr:`ModelConfig.sources` reads either as a tuple.
@@ -185,6 +187,34 @@ class SensorsBlock(_Strict):
     p_noise: float = Field(ge=0.0, le=1.0e5, description="Pressure noise std [Pa]")
 
 
+#: plant.yaml keys of the real-rig effects a model may carry (``effects``), and their upper
+#: limits [s] (as plant.yaml allows them).
+EFFECT_KEYS: dict[str, float] = {
+    "io.delay": 0.01,
+    "sensors.p_lag": 0.05,
+    "sensors.x_lag": 0.05,
+    **{f"valves.{v}.{k}": 0.02 for v in VALVES for k in ("tau_open", "tau_close")},
+}
+
+
+class EffectRange(_Strict):
+    """Added: one real-rig effect's value in the model and the range tune draws it from."""
+
+    nominal: float = Field(ge=0.0, description="The value of the nominal plant (SI units)")
+    range: Range = Field(description="[lo, hi] the plant draws sample (SI units)")
+
+
+def _check_effects(effects: dict[str, EffectRange]) -> None:
+    for key, eff in effects.items():
+        if key not in EFFECT_KEYS:
+            raise ValueError(f"effects: unknown key {key!r}; expected one of "
+                             f"{', '.join(EFFECT_KEYS)}")
+        lo, hi = eff.range
+        if not 0.0 <= lo <= eff.nominal <= hi <= EFFECT_KEYS[key]:
+            raise ValueError(f"effects.{key}: 0 <= lo <= nominal <= hi <= {EFFECT_KEYS[key]} "
+                             f"must hold, got lo={lo}, nominal={eff.nominal}, hi={hi}")
+
+
 class ModelConfig(_Strict):
     """The whole model.yaml document."""
 
@@ -206,6 +236,10 @@ class ModelConfig(_Strict):
     fit: FitBlock
     leak: LeakBlock = LeakBlock()
     sensors: SensorsBlock | None = None
+    effects: dict[str, EffectRange] | None = Field(
+        None, description="Added: real-rig effects (plant.yaml keys: io.delay, sensors.p_lag, "
+        "sensors.x_lag, valves.<valve>.tau_open|tau_close), each with the value the nominal "
+        "plant has and the range tune's plant draws sample; absent: none")
     basis: dict[str, str] | None = Field(
         None, description="Added: where each range of the plant coordinates came from, keyed "
         "like tune's plant draws (mass, friction.F_S, valves.a_in.C, ...): 'statistics: ...', "
@@ -217,6 +251,8 @@ class ModelConfig(_Strict):
     def _check(self) -> ModelConfig:
         if self.mass_range is not None:
             _check_range("mass", self.mass_range[0], self.mass, self.mass_range[1])
+        if self.effects:
+            _check_effects(self.effects)
         return self
 
     @property

@@ -1,8 +1,9 @@
 """The plants a model stands for: its nominal plant and the box of its uncertain coordinates.
 
 The nominal plant is the model read as a plant.yaml: rig, mass, Stribeck friction, valves (C, b,
-delays, minimum pulse), leak, sensor noise, and the constant disturbances F_n, D_a, D_b at θ's
-nominal values. For ``model_from_plant(PlantConfig())`` it equals ``PlantConfig()``.
+delays, minimum pulse), leak, sensor noise, the constant disturbances F_n, D_a, D_b at θ's
+nominal values, and the real-rig effects of ``effects`` at their nominal values. For
+``model_from_plant(PlantConfig())`` it equals ``PlantConfig()``.
 
 The box of each coordinate (:func:`uncertainty_box`):
 
@@ -15,6 +16,9 @@ friction.v_s, alpha       ``friction.ranges``
 disturbance.F_n           θ box [θ2_min, θ2_max]
 disturbance.D_a, D_b      θ box [θ5_min, θ5_max], [θ6_min, θ6_max]
 valves.<v>.C, .b          [C_min, C_max], [b_min, b_max] per valve
+``effects`` keys          the model's ``effects.<key>.range`` (IO delay, sensor lags, valve
+                          armature lags), where it is not a single value; the slow corner has
+                          the most lag
 ========================  =====================================================================
 
 Where an intersection is empty (an identified range outside the projection box), the identified
@@ -113,6 +117,9 @@ def uncertainty_box(model: ModelConfig,
     for name, v in zip(VALVES, model.valves.ordered(), strict=True):
         coords.append(Coordinate(f"valves.{name}.C", v.C_min, v.C_max, v.C, "low"))
         coords.append(Coordinate(f"valves.{name}.b", v.b_min, v.b_max, v.b, "high"))
+    for key, eff in sorted((model.effects or {}).items()):
+        if eff.range[1] > eff.range[0]:  # a lag or delay: the slow corner has the most of it
+            coords.append(Coordinate(key, eff.range[0], eff.range[1], eff.nominal, "high"))
     if not box:
         return tuple(coords)
     unknown = sorted(set(box) - {c.key for c in coords})
@@ -149,6 +156,12 @@ def _nominal_dict(model: ModelConfig, seed: int) -> dict[str, Any]:
     }
     if model.sensors is not None:
         data["sensors"] = {"x_noise": model.sensors.x_noise, "p_noise": model.sensors.p_noise}
+    for key, eff in (model.effects or {}).items():
+        node = data
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = float(eff.nominal)
     return data
 
 

@@ -8,8 +8,10 @@ controller's view of the curve).
 
 from __future__ import annotations
 
+from typing import Any
+
 from pneutune.control.constants import MODEL_SCHEMA, VALVES
-from pneutune.control.contracts.model import ModelConfig, SourceInfo
+from pneutune.control.contracts.model import EFFECT_KEYS, ModelConfig, SourceInfo
 from pneutune.control.contracts.plant import PlantConfig, ValveConfig
 from pneutune.control.physics.pwm import sample_pwm_curve
 
@@ -20,7 +22,9 @@ def model_from_plant(plant: PlantConfig, rel_margin: float = 0.2,
 
     The PWM curves are the plant's (:func:`~pneutune.control.physics.pwm.sample_pwm_curve`): the
     top-level ``pwm`` from valve a_in's timing, and ``valves.<v>.pwm`` for each valve whose
-    timing gives another curve. A_f = F_C, and every range is the value ± ``rel_margin``.
+    timing gives another curve. A_f = F_C, and every range is the value ± ``rel_margin``. The
+    plant's IO delay, sensor lags and valve armature lags become the model's ``effects``; its
+    lines, heat transfer, LuGre friction and supply droop have no place in a model.
     """
     m = rel_margin
 
@@ -72,7 +76,21 @@ def model_from_plant(plant: PlantConfig, rel_margin: float = 0.2,
         "sensors": {"x_noise": plant.sensors.x_noise, "p_noise": plant.sensors.p_noise},
         "notes": ["truth model made from a plant.yaml, not identified"],
     }
+    effects = _effects(plant, m)
+    if effects:
+        data["effects"] = effects
     return ModelConfig.model_validate(data)
+
+
+def _effects(plant: PlantConfig, m: float) -> dict[str, dict[str, Any]]:
+    """The plant's real-rig effects a model can carry (EFFECT_KEYS), each ± ``m`` of itself."""
+    values = {"io.delay": plant.io.delay, "sensors.p_lag": plant.sensors.p_lag,
+              "sensors.x_lag": plant.sensors.x_lag}
+    for name, v in zip(VALVES, plant.valves.ordered(), strict=True):
+        values[f"valves.{name}.tau_open"] = v.tau_open
+        values[f"valves.{name}.tau_close"] = v.tau_close
+    return {k: {"nominal": v, "range": [v * (1.0 - m), min(v * (1.0 + m), EFFECT_KEYS[k])]}
+            for k, v in values.items() if v > 0.0}
 
 
 __all__ = ["model_from_plant"]
