@@ -6,13 +6,14 @@ included) on a fresh study in a temporary folder, on ``--model`` (default: the c
 default ``reports/identify/model.yaml`` if it exists, else the truth model of the default plant,
 ``model_from_plant(PlantConfig())``; ``--model truth`` forces the latter), and prints:
 
-* the wall time of the command (target, issue 5: at most 120 s on the 2-core CI machine);
+* the wall time of the command (target: at most 45 s on the 2-core machine);
 * trials per second (finished trials / wall time of the command), and of the optimisation alone;
 * complete/pruned/failed counts, the best objective and the paper's on the same plants.
 
 Default settings: five scenarios (Table 1 + disturbance) at their full durations, 8 plant draws
-run on as many numba threads as there are CPUs (``--jobs``), CVaR 0.25, MedianPruner after each
-scenario, one worker (reproducible). ``--workers 2`` measures the two-worker variant.
+run on as many numba threads as there are CPUs (``--jobs``), CVaR 0.25, the median pruner after
+each scenario or the Wilcoxon pruner after each chunk of runs (``--pruners``), one worker
+(reproducible). ``--workers 2`` measures the two-worker variant.
 
 Closed-loop throughput (``--throughput``, before the command runs): one full evaluation of the
 paper's gains (every scenario x every draw of the objective, no abort) timed ``--repeat`` times
@@ -27,8 +28,17 @@ in this process, three ways, each printed as simulated seconds per wall second (
 The three give bit-identical metrics (checked here); only the wall time differs. ``--pwm`` picks
 the truth model's PWM update mode (``immediate``/``latched``) when ``--model truth``.
 
+Pruners (``--pruners``, default ``median,wilcoxon``): the command is run once per pruner
+(``tune --pruner``), seed (``--seeds``) and round (``--rounds``), on the same model, hence the
+same plant draws and noise for a seed; within a round the pruners alternate their order (so
+that a change of the machine's load hits both alike). Printed per run, then per pruner the wall
+times (min..max, median, runs) and per seed the best objective of each pruner: ``median`` is the
+pruning every study used before ``--pruner`` (the baseline), ``wilcoxon`` the per-run
+signed-rank test against the best trial (docs/tuning.md, "Pruning").
+
     .venv/bin/python benchmarks/tune_speed.py [--trials 200] [--workers 1] [--model M.yaml]
-        [--pwm latched] [--throughput-only] [--repeat 5]
+        [--pwm latched] [--throughput-only] [--repeat 5] [--no-throughput]
+        [--pruners median,wilcoxon] [--seeds 1,2,3] [--rounds 1]
 """
 
 from __future__ import annotations
@@ -42,6 +52,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
@@ -90,6 +101,40 @@ def throughput(model: ModelConfig, repeat: int) -> None:
               f"({min(w):.2f} .. {max(w):.2f} s per evaluation)")
 
 
+def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int,
+             pruner: str) -> tuple[float, dict[str, Any]]:
+    """Run the ``tune`` command on a fresh study in ``out``.
+
+    Parameters
+    ----------
+    model : Path
+        model.yaml.
+    out : Path
+        Output folder (must not hold a study).
+    trials, workers, seed : int
+        ``--trials``, ``--workers``, ``--seed``.
+    pruner : str
+        ``--pruner``.
+
+    Returns
+    -------
+    float
+        Wall time of the command [s].
+    dict
+        What ``tune --json`` printed.
+    """
+    exe = shutil.which("tune", path=os.path.dirname(sys.executable)) or "tune"
+    cmd = [exe, "--model", str(model), "--trials", str(trials), "--workers", str(workers),
+           "--seed", str(seed), "--pruner", pruner, "--out", str(out), "--json"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        sys.stderr.write(proc.stderr)
+        raise SystemExit(proc.returncode)
+    return wall, json.loads(proc.stdout)
+
+
 def main() -> int:
     """Run the benchmark and print its figures."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -102,7 +147,17 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=5, help="throughput repeats (default 5)")
     ap.add_argument("--throughput-only", action="store_true",
                     help="print the closed-loop throughput only, do not run tune")
+    ap.add_argument("--no-throughput", action="store_true",
+                    help="skip the closed-loop throughput, run tune only")
+    ap.add_argument("--pruners", default="median,wilcoxon",
+                    help="comma-separated tune --pruner values to compare (default "
+                         "median,wilcoxon; median is the baseline)")
+    ap.add_argument("--seeds", default="1", help="comma-separated seeds (default 1)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="runs per pruner and seed, alternating the pruners (default 1)")
     args = ap.parse_args()
+    pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
+    seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
     tmp = Path(tempfile.mkdtemp(prefix="pneutune-tune-bench-"))
     try:
         default = Path("reports/identify/model.yaml")
@@ -112,35 +167,44 @@ def main() -> int:
             plant = PlantConfig().with_updates({"rig": {"pwm_update": args.pwm}},
                                                source=f"<pwm_update {args.pwm}>")
             save_model(model_from_plant(plant), model)
-        throughput(load_model(model), args.repeat)
+        if not args.no_throughput:
+            throughput(load_model(model), args.repeat)
         if args.throughput_only:
             return 0
-        exe = shutil.which("tune", path=os.path.dirname(sys.executable)) or "tune"
-        cmd = [exe, "--model", str(model), "--trials", str(args.trials), "--workers",
-               str(args.workers), "--out", str(tmp / "out"), "--json"]
-        t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if proc.returncode != 0:
-            sys.stderr.write(proc.stderr)
-            return proc.returncode
-        res = json.loads(proc.stdout)
-        tr = res["trials"]
+        name = f"model_from_plant(PlantConfig(), {args.pwm})" if choice == "truth" else choice
         print(f"tune --trials {args.trials} --workers {args.workers} (default settings), "
-              f"{os.cpu_count()} CPUs, model: "
-              f"{f'model_from_plant(PlantConfig(), {args.pwm})' if choice == 'truth' else choice}")
-        print(f"  wall time of the command   {wall:8.1f} s   (target, issue 12: <= 60 s)")
-        print(f"  trials per second          {tr['this_run'] / wall:8.2f}   "
-              f"(optimisation alone: {tr['this_run'] / res['wall_s']:.2f}, {res['wall_s']:.1f} s)")
-        print(f"  trials                     {tr['complete']} complete, {tr['pruned']} pruned, "
-              f"{tr['failed']} failed")
-        print(f"  best objective             {res['objective']['tuned']:8.4f}   (trial "
-              f"{res['best']['trial']}; data/controller-paper.yaml: "
-              f"{res['objective']['paper']:.4f})")
-        for name, m in res["nominal"]["tuned"].items():
-            p = res["nominal"]["paper"][name]
-            print(f"  nominal {name:<18} tuned E_p {m['E_p_mm']:.3f} E_rms {m['E_rms_mm']:.3f} "
-                  f"mm | paper E_p {p['E_p_mm']:.3f} E_rms {p['E_rms_mm']:.3f} mm")
+              f"{os.cpu_count()} CPUs, model: {name}; pruners {', '.join(pruners)}, seeds "
+              f"{', '.join(map(str, seeds))}, {args.rounds} round(s)")
+        walls: dict[str, list[float]] = {p: [] for p in pruners}
+        best: dict[tuple[str, int], float] = {}
+        k = 0
+        for rnd in range(args.rounds):
+            for seed in seeds:
+                order = pruners if k % 2 == 0 else pruners[::-1]  # alternate who goes first
+                k += 1
+                for pruner in order:
+                    out = tmp / f"out-{pruner}-{seed}-{rnd}"
+                    wall, res = run_tune(model, out, args.trials, args.workers, seed, pruner)
+                    shutil.rmtree(out, ignore_errors=True)
+                    tr = res["trials"]
+                    walls[pruner].append(wall)
+                    best[(pruner, seed)] = res["objective"]["tuned"]
+                    print(f"  round {rnd} seed {seed} {pruner:<9} wall {wall:6.1f} s "
+                          f"(optimisation {res['wall_s']:5.1f} s, "
+                          f"{tr['this_run'] / wall:5.2f} trials/s)  "
+                          f"{tr['complete']:3d} complete {tr['pruned']:3d} pruned "
+                          f"{tr['failed']} failed  best {res['objective']['tuned']:.4f} "
+                          f"(trial {res['best']['trial']}; paper's "
+                          f"{res['objective']['paper']:.4f})", flush=True)
+        print("wall time of the command (target: <= 45 s on the 2-core machine)")
+        for pruner, w in walls.items():
+            print(f"  {pruner:<9} {min(w):6.1f} .. {max(w):6.1f} s, median "
+                  f"{float(np.median(w)):6.1f} s ({len(w)} runs)")
+        print("best objective per seed (the same trials' value on the same plants in every "
+              "round: a seeded study is reproducible)")
+        print("  seed  " + "  ".join(f"{p:>9}" for p in pruners))
+        for seed in seeds:
+            print(f"  {seed:<5} " + "  ".join(f"{best[(p, seed)]:9.4f}" for p in pruners))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

@@ -55,6 +55,7 @@ from .study import (
     DEFAULT_JOURNAL,
     RunSummary,
     StudySpec,
+    check_pruner,
     default_study_name,
     finished,
     redact_url,
@@ -92,6 +93,9 @@ class TuneSettings:
     sampler : str
         ``tpe`` (default) or ``cmaes`` (TPE, then CMA-ES warm-started from it; needs the
         ``cmaes`` package); :mod:`pneutune.tune.samplers`.
+    pruner : str or None
+        ``wilcoxon``, ``median`` or ``none`` (:func:`pneutune.tune.study.make_pruner`); None
+        (default): a resumed study's own, ``median`` for a new one.
     """
 
     trials: int
@@ -103,6 +107,7 @@ class TuneSettings:
     seed: int = 1
     objective: ObjectiveSettings = field(default_factory=ObjectiveSettings)
     sampler: str = DEFAULT_SAMPLER
+    pruner: str | None = None
 
     def __post_init__(self) -> None:
         if self.trials < 1:
@@ -114,6 +119,7 @@ class TuneSettings:
         if self.jobs is not None and self.jobs < 1:
             raise TuneError(f"--jobs must be >= 1, got {self.jobs}")
         check_sampler(self.sampler)  # unknown, or its package missing: before any simulation
+        check_pruner(self.pruner)
 
 
 @dataclass
@@ -240,7 +246,7 @@ def failure_summary(study: optuna.Study) -> str:
         if why:
             reasons[why] = reasons.get(why, 0) + 1
     if not reasons:
-        return "no failure recorded (every trial was pruned by the median rule)"
+        return "no failure recorded (every trial was pruned as worse than others)"
     top = sorted(reasons.items(), key=lambda kv: -kv[1])[:3]
     return "; ".join(f"{n}x {why}" for why, n in top)
 
@@ -318,7 +324,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         first.append(logged)
     spec = StudySpec(storage, study_name, settings.seed, settings.trials, settings.workers,
                      model_sha, objective_settings, jobs, extra_first=tuple(first),
-                     sampler=settings.sampler)
+                     sampler=settings.sampler, pruner=settings.pruner)
     run = run_study(spec, model_cfg, progress=progress)
     study = run.study
     counts = run.counts_after
@@ -362,6 +368,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
+            "pruner": run.pruner,
             "behind_paper": behind, "log_check": log_check.as_dict()}
     return TuneResult(tuned, study, best, comp, feas, run, paths, info, guard)
 

@@ -20,7 +20,7 @@ from .api import DEFAULT_OUT, TuneSettings, tune
 from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError
 from .samplers import CMAES_WARM_START, DEFAULT_SAMPLER, SAMPLERS
 from .space import VARIANTS
-from .study import DEFAULT_JOURNAL
+from .study import DEFAULT_JOURNAL, PRUNERS
 
 DEFAULT_MODEL = "reports/identify/model.yaml"
 
@@ -40,9 +40,11 @@ drawn from the model's uncertainty (the nominal plant, two corners of the box, a
 hypercube); per scenario the CVaR of the cost over the draws, averaged over the scenarios. The
 cost is the tracking error relative to the paper's Table 1 plus penalties for valve chattering,
 chamber pressures outside [p0/2, p_s + 0.5 bar] and end-stop contact. 1.0 means "as good as the
-paper's rig on every scenario". An unstable run prunes its trial. Before writing, the best
-trials are run on plants the study never saw and the first that completes every run is kept
-(the held-out guard; report.md says when it passed over the study's best). docs/tuning.md.
+paper's rig on every scenario". An unstable run prunes its trial, and so does one that is worse
+than earlier trials on the runs done so far (--pruner: median, wilcoxon or none). Before writing,
+the best trials are run on plants the study never saw and the first that completes every run
+is kept (the held-out guard; report.md says when it passed over the study's best).
+docs/tuning.md.
 
 When the model came from a closed-loop log that `deploy --log` wrote, the controller that ran is
 replayed on the model's nominal plant beside the log's measured E_p, and the tuned one with it
@@ -134,12 +136,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                              "measured worse on every fleet plant tried (docs/tuning.md); try it "
                              "on a rig whose smallest pulse is large (default study name gets "
                              "-dither)")
+    parser.add_argument("--pruner", choices=PRUNERS, default=None,
+                        help="how trials are stopped early: median (default for a new "
+                             "study: the running mean after each scenario against the median "
+                             "of earlier trials), wilcoxon (each run's cost is reported, runs "
+                             "in a per-trial order, and a trial stops once a Wilcoxon "
+                             "signed-rank test finds it worse than the best trial on the same "
+                             "runs: about twice as fast, but a worse best trial on some seeds; "
+                             "docs/tuning.md) or none. A completed trial's value is the same "
+                             "with any. A study keeps its pruner: without the flag a resumed "
+                             "study uses its own")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (progress and prose on stderr)")
     args = parser.parse_args(argv)
     settings = TuneSettings(
         trials=args.trials, out=args.out, storage=args.storage, study=args.study,
         workers=args.workers, jobs=args.jobs, seed=args.seed, sampler=args.sampler,
+        pruner=args.pruner,
         objective=ObjectiveSettings(scenarios=_scenarios(args.scenarios), n_draws=args.draws,
                                     duration=args.duration, variant=args.variant,
                                     dead_zone=args.dead_zone))

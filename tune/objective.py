@@ -29,8 +29,25 @@ Failures and pruning: a run that goes unstable (non-finite plant state), is abor
 |e1| exceeded ``abort_error`` (5 mm by default: the paper's errors are below 0.6 mm, the initial
 transient of the paper's gains below 1.2 mm) or gives non-finite indices ends the trial as
 *pruned* (reported value :data:`FAIL_VALUE` at that step, reason in ``user_attrs["failure"]``),
-never as an exception. After each scenario the running mean is reported
-(``trial.report(value, step=scenario index)``) and the pruner may stop the trial there.
+never as an exception.
+
+Reports to the pruner, two ways (the value of a completed trial is the same either way):
+
+* per scenario (``instance_reports=False``; the median pruner): after each scenario the running
+  mean is reported (``trial.report(value, step=scenario index)``) and the pruner may stop the
+  trial there;
+* per instance (``instance_reports=True``; Optuna's ``WilcoxonPruner``): an *instance* is one
+  (scenario, draw) run, id ``scenario index * n_draws + draw index``. The instances are run in
+  chunks of :data:`INSTANCE_CHUNK` draws of one scenario (a fixed partition of the draws, one
+  compiled call per chunk), the chunks in an order shuffled per trial (seeded by the objective's
+  seed and the trial number, so a study stays reproducible); each run's cost c(s, d) is
+  reported at its instance id and the pruner may stop the trial after each chunk. A failed run
+  reports :data:`FAIL_VALUE` at its instance id. A pruned trial also reports, at the step one
+  past the last instance id (``n_scenarios * n_draws``), an estimate of its objective from its
+  runs so far (:func:`estimate_from_best`; :data:`FAIL_VALUE` when a run failed): Optuna's
+  samplers rank pruned trials by the value at their highest step, which would otherwise be a
+  single run's cost. The pruner never reads a pruned trial's values (only the current and the
+  best trial's).
 """
 
 from __future__ import annotations
@@ -68,6 +85,10 @@ from .space import VARIANTS, SearchSpace, controller_from_params, search_space
 DEFAULT_SCENARIOS: tuple[str, ...] = (*GROUPS["table1"], "disturbance-0.5hz")
 #: Value reported for a trial stopped by an unstable or aborted run.
 FAIL_VALUE: float = 1.0e3
+#: Draws of one scenario run per compiled call between two pruning checks, with per-instance
+#: reports (fixed, not ``jobs``: the pruning decisions, hence the study, must not depend on the
+#: number of threads).
+INSTANCE_CHUNK: int = 4
 
 
 class TuneError(PneutuneError, ValueError):
@@ -284,6 +305,11 @@ class Evaluation:
         Why the evaluation failed.
     stopped : bool
         The ``report`` callback asked to stop.
+    reported : list of (int, float)
+        Per-instance evaluation (:meth:`TuneObjective.evaluate_instances`): the (instance id,
+        cost) pairs in the order they were run.
+    failed_instance : int or None
+        Per-instance evaluation: the instance id of the failed run.
     """
 
     value: float | None = None
@@ -293,6 +319,8 @@ class Evaluation:
     runs: dict[tuple[str, int], RunCost] = field(default_factory=dict)
     failure: str | None = None
     stopped: bool = False
+    reported: list[tuple[int, float]] = field(default_factory=list)
+    failed_instance: int | None = None
 
     def draw_totals(self) -> dict[int, float]:
         """Per draw, the mean cost over the scenarios evaluated (None-cost runs excluded)."""
@@ -305,6 +333,40 @@ class Evaluation:
     def nominal_metrics(self) -> dict[str, dict[str, Any]]:
         """The metrics on draw 0 (the nominal plant), per scenario."""
         return {s: rc.metrics.as_dict() for (s, d), rc in self.runs.items() if d == 0}
+
+
+def estimate_from_best(reported: Sequence[tuple[int, float]], study: optuna.Study) -> float:
+    """What a pruned trial's objective would be, judged on the runs it did: the best trial's
+    value times the geometric mean of the ratios of the trial's costs to the best trial's on the
+    same instances (the mean of the costs when there is no best trial to compare with).
+
+    It removes the difficulty of the instances a trial happened to run (a square wave costs
+    more than a sine), so that pruned trials rank among themselves as their runs compare with
+    the best trial's.
+
+    Parameters
+    ----------
+    reported : sequence of (int, float)
+        (instance id, cost) pairs of the pruned trial.
+    study : optuna.Study
+
+    Returns
+    -------
+    float
+    """
+    costs = dict(reported)
+    try:
+        best = study.best_trial
+    except ValueError:
+        best = None
+    if best is not None and best.value is not None:
+        pairs = [(c, best.intermediate_values[i]) for i, c in costs.items()
+                 if i in best.intermediate_values]
+        pairs = [(c, b) for c, b in pairs if c > 0.0 and b > 0.0]
+        if pairs:
+            ratio = float(np.exp(np.mean([math.log(c / b) for c, b in pairs])))
+            return float(best.value) * ratio
+    return float(np.mean(list(costs.values())))
 
 
 class TuneObjective:
@@ -325,13 +387,19 @@ class TuneObjective:
         per scenario: :func:`~pneutune.control.sim.closed_loop.run_batch`). Every run is
         computed as if alone, so the values do not depend on ``jobs``; a trial's wall time
         drops by up to ``min(jobs, draws)``.
+    instance_reports : bool
+        Report each (scenario, draw) run's cost at its instance id, in a per-trial order, for
+        Optuna's ``WilcoxonPruner`` (module docstring); False (default) reports the running
+        mean after each scenario. A completed trial's value is the same either way.
     """
 
     def __init__(self, model: ModelConfig, seed: int,
-                 settings: ObjectiveSettings | None = None, jobs: int = 1) -> None:
+                 settings: ObjectiveSettings | None = None, jobs: int = 1,
+                 instance_reports: bool = False) -> None:
         if jobs < 1:
             raise TuneError(f"jobs >= 1 must hold, got {jobs}")
         self.jobs = int(jobs)
+        self.instance_reports = bool(instance_reports)
         self.model = model
         self.seed = int(seed)
         self.settings = settings if settings is not None else ObjectiveSettings()
@@ -349,6 +417,56 @@ class TuneObjective:
             s.name: tuple(prepare_run(s, d.plant) for d in self.draws) for s in self.scenarios}
         self._batches: dict[str, PreparedBatch] = {
             name: prepare_batch(runs) for name, runs in self._runs.items()}
+        # per-instance evaluation: the draws in fixed chunks (draws i, i + k, i + 2k, ...),
+        # their batches stacked on first use
+        n_chunks = math.ceil(len(self.draws) / INSTANCE_CHUNK)
+        self.draw_chunks: tuple[tuple[int, ...], ...] = tuple(
+            tuple(range(i, len(self.draws), n_chunks)) for i in range(n_chunks))
+        self._chunk_batches: dict[tuple[str, int], PreparedBatch] = {}
+
+    def instance_id(self, scenario: int, draw: int) -> int:
+        """The id of run (scenario index, draw index) as reported to the pruner."""
+        return scenario * len(self.draws) + draw
+
+    def instance_order(self, trial_number: int) -> list[tuple[int, int]]:
+        """The (scenario index, chunk index) pairs in the order trial ``trial_number`` runs
+        them with per-instance reports: a permutation seeded by the objective's seed and the
+        trial number (the same in every process and on resume).
+
+        Returns
+        -------
+        list of (int, int)
+        """
+        pairs = [(s, c) for s in range(len(self.scenarios)) for c in range(len(self.draw_chunks))]
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, int(trial_number)]))
+        return [pairs[i] for i in rng.permutation(len(pairs))]
+
+    def run_chunk(self, controller: ControllerConfig, scenario: int, chunk: int,
+                  cfg_vec: np.ndarray | None = None) -> list[ClosedLoopResult]:
+        """The draws ``draw_chunks[chunk]`` of scenario index ``scenario``, in one compiled
+        call on :attr:`jobs` threads (each run bit-identical to :meth:`run_scenario`'s).
+
+        Returns
+        -------
+        list of ClosedLoopResult
+            In the order of ``draw_chunks[chunk]``.
+        """
+        sc = self.scenarios[scenario]
+        key = (sc.name, chunk)
+        batch = self._chunk_batches.get(key)
+        if batch is None:
+            runs = self._runs[sc.name]
+            batch = prepare_batch([runs[d] for d in self.draw_chunks[chunk]])
+            self._chunk_batches[key] = batch
+        threads = max(1, min(self.jobs, len(batch.runs), numba.config.NUMBA_NUM_THREADS))
+        previous = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            with numba.parallel_chunksize(1):
+                return run_batch(batch, controller, abort_error=self.settings.abort_error,
+                                 cfg_vec=cfg_vec)
+        finally:
+            numba.set_num_threads(previous)
 
     def _threads(self) -> int:
         """Threads to run a scenario's draws on."""
@@ -436,6 +554,63 @@ class TuneObjective:
             ev.value = ev.running[-1]
         return ev
 
+    def evaluate_instances(self, controller: ControllerConfig,
+                           order: Sequence[tuple[int, int]],
+                           report: Callable[[list[tuple[int, float]], bool], bool]
+                           | None = None,
+                           ) -> Evaluation:
+        """Score ``controller`` chunk by chunk in ``order``, reporting each run's cost.
+
+        Stops at the first failed run. When every run completed, the result (``value``,
+        ``running``, ``scenario_cvar``, ``scenario_worst``) is that of :meth:`evaluate`: the
+        same costs, aggregated in scenario and draw order.
+
+        Parameters
+        ----------
+        controller : ControllerConfig
+        order : sequence of (int, int)
+            (scenario index, chunk index) pairs (:meth:`instance_order`), each once.
+        report : callable, optional
+            ``report([(instance id, cost), ...], last) -> stop`` after each chunk (``last``:
+            the final one, whose answer is ignored); not called for a chunk with a failed run
+            (the caller reports :data:`FAIL_VALUE`).
+
+        Returns
+        -------
+        Evaluation
+            With ``failure`` set, ``failed_instance`` holds the failed run's instance id.
+        """
+        st = self.settings
+        ev = Evaluation()
+        vec = pack(controller)
+        p0 = controller.rig.p0
+        p_max = controller.limits.p_max
+        for k, (si, ci) in enumerate(order):
+            sc = self.scenarios[si]
+            results = self.run_chunk(controller, si, ci, vec)
+            reported: list[tuple[int, float]] = []
+            for d, res in zip(self.draw_chunks[ci], results, strict=True):
+                rc = run_cost(res.metrics, sc, d, p0, p_max, st)
+                ev.runs[(sc.name, d)] = rc
+                if rc.cost is None:
+                    ev.failure = (f"{rc.failure} in {sc.name} on draw {d} "
+                                  f"({self.draws[d].label})")
+                    ev.failed_instance = self.instance_id(si, d)
+                    return ev
+                reported.append((self.instance_id(si, d), rc.cost))
+            last = k == len(order) - 1
+            ev.reported.extend(reported)
+            if report is not None and report(reported, last) and not last:
+                ev.stopped = True
+                return ev
+        for sc in self.scenarios:  # scenario and draw order, as evaluate() aggregates
+            costs = [ev.runs[(sc.name, d.index)].cost for d in self.draws]
+            ev.scenario_cvar[sc.name] = cvar(costs, st.cvar_alpha)  # type: ignore[arg-type]
+            ev.scenario_worst[sc.name] = float(max(costs))  # type: ignore[type-var]
+            ev.running.append(float(np.mean(list(ev.scenario_cvar.values()))))
+        ev.value = ev.running[-1]
+        return ev
+
     def controller(self, params: dict[str, float]) -> ControllerConfig:
         """The controller of a parameter set on this model."""
         return controller_from_params(self.model, params, dead_zone=self.settings.dead_zone)
@@ -449,12 +624,30 @@ class TuneObjective:
             trial.report(value, step)
             return trial.should_prune()
 
-        ev = self.evaluate(controller, report=report)
+        def report_instances(values: list[tuple[int, float]], last: bool) -> bool:
+            for instance, cost in values:
+                trial.report(cost, instance)
+            return not last and trial.should_prune()
+
+        if self.instance_reports:  # every run reported: the best trial must hold them all
+            ev = self.evaluate_instances(controller, self.instance_order(trial.number),
+                                         report=report_instances)
+        else:
+            ev = self.evaluate(controller, report=report)
+        n_runs = len(self.scenarios) * len(self.draws)  # also the summary step
         if ev.failure is not None:
             trial.set_user_attr("failure", ev.failure)
-            trial.report(FAIL_VALUE, len(ev.scenario_cvar))
+            if self.instance_reports:
+                if ev.failed_instance is not None:
+                    trial.report(FAIL_VALUE, ev.failed_instance)
+                trial.report(FAIL_VALUE, n_runs)
+            else:
+                trial.report(FAIL_VALUE, len(ev.scenario_cvar))
             raise optuna.TrialPruned(ev.failure)
         if ev.stopped:
+            if self.instance_reports:  # the summary step (module docstring)
+                trial.report(estimate_from_best(ev.reported, trial.study), n_runs)
+                raise optuna.TrialPruned(f"pruned after {len(ev.reported)} of {n_runs} runs")
             raise optuna.TrialPruned(f"pruned after {len(ev.running)} scenario(s)")
         trial.set_user_attr("scenarios", {
             s: {"cvar": ev.scenario_cvar[s], "worst": ev.scenario_worst[s],
@@ -469,5 +662,6 @@ class TuneObjective:
         return ev.value
 
 
-__all__ = ["DEFAULT_SCENARIOS", "FAIL_VALUE", "Evaluation", "ObjectiveSettings", "RunCost",
-           "TuneError", "TuneObjective", "cvar", "reference_figures", "run_cost"]
+__all__ = ["DEFAULT_SCENARIOS", "FAIL_VALUE", "INSTANCE_CHUNK", "Evaluation",
+           "ObjectiveSettings", "RunCost", "TuneError", "TuneObjective", "cvar",
+           "estimate_from_best", "reference_figures", "run_cost"]

@@ -35,12 +35,21 @@ trial); with several the interleaving of the workers is not. Each worker exits w
 dies, so ``kill -9`` of ``tune`` stops the whole run.
 
 The first trial of a new study is the paper's Sec. 5.1 values (clipped to the ranges), so the
-study always holds the baseline; pruning is Optuna's ``MedianPruner`` over the scenarios.
+study always holds the baseline.
+
+Pruning (``--pruner``, :func:`make_pruner`): ``median`` (the default): ``MedianPruner`` on
+the running mean after each scenario (also every study made before the option); ``wilcoxon``:
+Optuna's ``WilcoxonPruner`` on per-run reports (each (scenario, draw) run's cost at its instance
+id, :class:`~pneutune.tune.objective.TuneObjective` with ``instance_reports``), which stops a
+trial once a signed-rank test over the runs done so far finds it worse than the best trial on
+the same runs; ``none``. A study keeps its pruner (stored with it when not ``median``); without
+``--pruner`` a resumed study uses its own.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import multiprocessing
 import os
@@ -58,7 +67,7 @@ from optuna.trial import TrialState
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.errors import PneutuneError
 
-from .objective import ObjectiveSettings, TuneObjective
+from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .samplers import DEFAULT_SAMPLER, N_STARTUP_TRIALS, check_sampler, make_sampler
 from .space import search_space
 
@@ -76,6 +85,17 @@ GRACE_PERIOD = 30
 #: PercentilePruner keeping the best third was measured too: 30 % faster, but a worse best trial
 #: on 3 of 3 studies.)
 PRUNER_STARTUP_TRIALS = 10
+#: Pruners of ``--pruner``.
+PRUNERS: tuple[str, ...] = ("wilcoxon", "median", "none")
+#: The pruner of a new study when none is asked for (``wilcoxon`` is about twice as fast but
+#: found a worse best trial on some seeds: docs/tuning.md, "Pruning").
+DEFAULT_PRUNER = "median"
+#: The pruner of a study whose metadata names none (made before the option).
+LEGACY_PRUNER = "median"
+#: WilcoxonPruner: p-value below which a trial is stopped as worse than the best one, and the
+#: paired runs needed before any test (one chunk of draws).
+WILCOXON_P_THRESHOLD = 0.1
+WILCOXON_STARTUP_STEPS = 4
 _RDB_SCHEMES = ("sqlite", "postgresql", "postgres", "mysql", "mariadb", "oracle", "mssql")
 
 
@@ -89,6 +109,48 @@ class StudyMismatchError(PneutuneError, ValueError):
 
 class WorkerError(RuntimeError):
     """A worker process failed (its traceback is on stderr): an internal failure, exit 1."""
+
+
+def check_pruner(name: str | None) -> None:
+    """Raise :class:`~pneutune.tune.objective.TuneError` unless ``name`` is None or one of
+    :data:`PRUNERS`."""
+    if name is not None and name not in PRUNERS:
+        raise TuneError(f"--pruner must be one of {', '.join(PRUNERS)}, got {name!r}")
+
+
+def make_pruner(name: str) -> optuna.pruners.BasePruner:
+    """The Optuna pruner of ``--pruner`` (module docstring).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`PRUNERS`.
+
+    Returns
+    -------
+    optuna.pruners.BasePruner
+    """
+    check_pruner(name)
+    if name == "wilcoxon":
+        with warnings.catch_warnings():  # experimental in Optuna 3.6-5.x
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return optuna.pruners.WilcoxonPruner(p_threshold=WILCOXON_P_THRESHOLD,
+                                                 n_startup_steps=WILCOXON_STARTUP_STEPS)
+    if name == "median":
+        return optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
+                                           n_warmup_steps=0, interval_steps=1)
+    return optuna.pruners.NopPruner()
+
+
+def study_pruner(meta: dict[str, Any] | None, asked: str | None) -> str:
+    """The pruner a study runs with: ``asked``, else the one stored in its metadata ``meta``
+    (:data:`LEGACY_PRUNER` when it names none), else, for a new study (``meta`` None),
+    :data:`DEFAULT_PRUNER`."""
+    if asked is not None:
+        return asked
+    if meta is None:
+        return DEFAULT_PRUNER
+    return str(meta.get("pruner", LEGACY_PRUNER))
 
 
 def default_study_name(model_sha256: str, seed: int, variant: str = "modified_darc",
@@ -310,6 +372,10 @@ class StudySpec:
     sampler : str
         ``tpe`` (default) or ``cmaes`` (:mod:`pneutune.tune.samplers`; ``gp`` for benchmarks).
         Stored with the study when not ``tpe``: a study is resumed only with its own sampler.
+    pruner : str or None
+        ``wilcoxon``, ``median`` or ``none`` (:func:`make_pruner`); None: the study's own (a
+        new study: :data:`DEFAULT_PRUNER`). Stored with the study when not ``median``: a study
+        is resumed only with its own pruner.
     """
 
     storage: str
@@ -322,6 +388,7 @@ class StudySpec:
     jobs: int = 1
     extra_first: tuple[dict[str, float], ...] = ()
     sampler: str = DEFAULT_SAMPLER
+    pruner: str | None = None
 
     def meta(self, model: ModelConfig) -> dict[str, Any]:
         """What the study is created with (stored, then checked on resume)."""
@@ -330,6 +397,8 @@ class StudySpec:
                 "space": search_space(model, self.settings.variant).signature()}
         if self.sampler != DEFAULT_SAMPLER:  # studies made before the option resume unchanged
             meta["sampler"] = self.sampler
+        if self.pruner not in (None, LEGACY_PRUNER):  # likewise
+            meta["pruner"] = self.pruner
         return meta
 
     def to_dict(self) -> dict[str, Any]:
@@ -338,7 +407,7 @@ class StudySpec:
                 "n_trials": self.n_trials, "workers": self.workers,
                 "model_sha256": self.model_sha256, "settings": self.settings.to_dict(),
                 "jobs": self.jobs, "extra_first": [dict(p) for p in self.extra_first],
-                "sampler": self.sampler}
+                "sampler": self.sampler, "pruner": self.pruner}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> StudySpec:
@@ -362,7 +431,8 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
     """Create the study, or load it and check that it was made for this model, seed and settings.
 
     A new study gets its metadata and, as its first trial, the paper's parameters (then those
-    of ``spec.extra_first``).
+    of ``spec.extra_first``). ``spec.pruner`` None takes the study's own pruner (a new study:
+    :data:`DEFAULT_PRUNER`; :func:`study_pruner` tells which).
 
     Raises
     ------
@@ -374,8 +444,9 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
     storage = open_storage(spec.storage)
     study = optuna.create_study(storage=storage, study_name=spec.study_name,
                                 direction="minimize", load_if_exists=True)
-    want = _normalise(spec.meta(model))
     have = study.user_attrs.get(META_KEY)
+    spec = dataclasses.replace(spec, pruner=study_pruner(have, spec.pruner))
+    want = _normalise(spec.meta(model))
     if have is None:
         study.set_user_attr(META_KEY, want)
         if not study.get_trials(deepcopy=False):
@@ -386,12 +457,14 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
         return study
     have = _normalise(have)
     diffs = [k for k in want if have.get(k) != want[k]]
-    if "sampler" in have and "sampler" not in want:  # a CMA-ES study resumed with TPE
-        want["sampler"] = DEFAULT_SAMPLER
-        diffs.append("sampler")
+    defaults = {"sampler": DEFAULT_SAMPLER, "pruner": LEGACY_PRUNER}  # stored when not these
+    for key, default in defaults.items():
+        if key in have and key not in want:  # e.g. a CMA-ES study resumed with TPE
+            want[key] = default
+            diffs.append(key)
     if diffs:
         detail = "; ".join(f"{k}: study has "
-                           f"{_short(have.get(k, DEFAULT_SAMPLER if k == 'sampler' else None))}, "
+                           f"{_short(have.get(k, defaults.get(k)))}, "
                            f"this run {_short(want[k])}"
                            for k in diffs)
         raise StudyMismatchError(
@@ -441,11 +514,12 @@ def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
     """
     _quiet_optuna()
     storage = open_storage(spec.storage)
-    n_existing = len(storage.get_all_trials(
-        storage.get_study_id_from_name(spec.study_name), deepcopy=False))
+    study_id = storage.get_study_id_from_name(spec.study_name)
+    n_existing = len(storage.get_all_trials(study_id, deepcopy=False))
     sampler = make_sampler(spec.sampler, sampler_seed(spec.seed, worker, n_existing))
-    pruner = optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
-                                         n_warmup_steps=0, interval_steps=1)
+    pruner_name = study_pruner(storage.get_study_user_attrs(study_id).get(META_KEY),
+                               spec.pruner)
+    pruner = make_pruner(pruner_name)
     study = optuna.load_study(study_name=spec.study_name, storage=storage, sampler=sampler,
                               pruner=pruner)
     callbacks = [] if on_trial is None else [lambda _s, _t: on_trial()]
@@ -463,7 +537,8 @@ def work(spec: StudySpec, model: ModelConfig, worker: int = 0,
         if only_waiting and counts["WAITING"] == 0:
             break
         if objective is None:  # only now: a resumed, finished study prepares no runs
-            objective = TuneObjective(model, spec.seed, spec.settings, jobs=spec.jobs)
+            objective = TuneObjective(model, spec.seed, spec.settings, jobs=spec.jobs,
+                                      instance_reports=pruner_name == "wilcoxon")
         study.optimize(objective, n_trials=1, gc_after_trial=False, callbacks=callbacks)
         ran += 1
     return ran
@@ -492,6 +567,8 @@ class RunSummary:
         A torn last journal line was dropped.
     wall_s : float
         Wall time of the optimisation [s].
+    pruner : str
+        The study's pruner (:func:`make_pruner`).
     """
 
     study: optuna.Study
@@ -500,6 +577,7 @@ class RunSummary:
     leftovers_failed: int
     journal_repaired: bool
     wall_s: float
+    pruner: str = LEGACY_PRUNER
 
 
 def run_study(spec: StudySpec, model: ModelConfig,
@@ -533,6 +611,7 @@ def run_study(spec: StudySpec, model: ModelConfig,
     if spec.jobs < 1:
         raise StorageError(f"--jobs >= 1 must hold, got {spec.jobs}")
     check_sampler(spec.sampler)
+    check_pruner(spec.pruner)
     t0 = time.perf_counter()
     with local_lock(spec.storage) as alone:
         repaired = False
@@ -540,6 +619,8 @@ def run_study(spec: StudySpec, model: ModelConfig,
         if alone and file is not None and not is_url(spec.storage):
             repaired = repair_journal(file)
         study = prepare_study(spec, model)
+        spec = dataclasses.replace(spec, pruner=study_pruner(study.user_attrs.get(META_KEY),
+                                                             spec.pruner))
         leftovers = fail_leftover_trials(study) if alone else 0
         before = trial_counts(study)
         if progress is not None:
@@ -555,7 +636,8 @@ def run_study(spec: StudySpec, model: ModelConfig,
         after = trial_counts(study)
         if progress is not None:
             progress(finished(after), spec.n_trials)
-    return RunSummary(study, before, after, leftovers, repaired, time.perf_counter() - t0)
+    return RunSummary(study, before, after, leftovers, repaired, time.perf_counter() - t0,
+                      str(spec.pruner))
 
 
 def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
@@ -585,9 +667,8 @@ def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
         raise WorkerError(f"worker process(es) failed: {bad} (see the traceback above)")
 
 
-__all__ = ["DEFAULT_JOURNAL", "N_STARTUP_TRIALS", "RunSummary",
-           "StorageError", "StudyMismatchError", "StudySpec",
-           "WorkerError", "default_study_name", "fail_leftover_trials",
-           "finished", "local_file", "local_lock", "open_storage", "prepare_study",
-           "redact_url", "repair_journal", "run_study", "sampler_seed", "storage_scheme",
-           "trial_counts", "work"]
+__all__ = ["DEFAULT_JOURNAL", "DEFAULT_PRUNER", "N_STARTUP_TRIALS", "PRUNERS", "RunSummary",
+           "StorageError", "StudyMismatchError", "StudySpec", "WorkerError", "check_pruner",
+           "default_study_name", "fail_leftover_trials", "finished", "local_file", "local_lock",
+           "make_pruner", "open_storage", "prepare_study", "redact_url", "repair_journal",
+           "run_study", "sampler_seed", "storage_scheme", "study_pruner", "trial_counts", "work"]
