@@ -36,9 +36,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numba import njit
 from scipy.integrate import cumulative_trapezoid
 from scipy.optimize import minimize_scalar
-from scipy.signal import lfilter, savgol_filter
+from scipy.signal import savgol_filter
 
 from pneutune.control.errors import LogError
 from pneutune.control.physics.friction import stribeck
@@ -85,7 +86,78 @@ def lag_filter(u: np.ndarray, tau: float, h: float) -> np.ndarray:
     """
     phi = np.exp(-h / tau)
     c = tau * (1.0 - phi) / h
-    return lfilter([1.0 - c, c - phi], [1.0, -phi], u - u[0]) + u[0]
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    out = np.empty_like(u)
+    _first_order_filter(u, 1.0 - c, c - phi, -phi, out)
+    return out
+
+
+def lag_filter3(signals: np.ndarray, tau: float, h: float, rows: np.ndarray) -> np.ndarray:
+    """:func:`lag_filter` of three signals at once, kept at some samples only.
+
+    Parameters
+    ----------
+    signals : ndarray, (3, N)
+        The signals, samples ``h`` apart.
+    tau : float
+        Time constant [s] (> 0).
+    h : float
+        Sample period [s].
+    rows : ndarray of int, (R,)
+        The samples kept, increasing.
+
+    Returns
+    -------
+    ndarray, (3, R)
+        ``lag_filter(signals[k], tau, h)[rows]`` for each k (the same floats).
+    """
+    phi = np.exp(-h / tau)
+    c = tau * (1.0 - phi) / h
+    out = np.empty((3, rows.shape[0]))
+    _first_order_filter3(np.ascontiguousarray(signals, dtype=np.float64), 1.0 - c, c - phi,
+                         -phi, np.ascontiguousarray(rows, dtype=np.int64), out)
+    return out
+
+
+@njit(cache=True)
+def _first_order_filter(u: np.ndarray, b0: float, b1: float, a1: float, out: np.ndarray) -> None:
+    """``out = lfilter([b0, b1], [1, a1], u - u[0]) + u[0]`` (scipy.signal), in one pass.
+
+    The transposed direct form II of ``lfilter`` with its floating-point operations in its
+    order: ``y = z + b0 x``, then ``z = x b1 - y a1``, from ``z = 0``; so the same floats.
+    """
+    u0 = u[0]
+    z = 0.0
+    for i in range(u.shape[0]):
+        x = u[i] - u0
+        y = z + b0 * x
+        z = x * b1 - y * a1
+        out[i] = y + u0
+
+
+@njit(cache=True)
+def _first_order_filter3(u: np.ndarray, b0: float, b1: float, a1: float, rows: np.ndarray,
+                         out: np.ndarray) -> None:
+    """:func:`_first_order_filter` of the three rows of ``u`` side by side (their recursions
+    overlap in the processor), stored at the samples ``rows`` only."""
+    u0, u1, u2 = u[0, 0], u[1, 0], u[2, 0]
+    z0 = z1 = z2 = 0.0
+    r = 0
+    for i in range(u.shape[1]):
+        x0 = u[0, i] - u0
+        x1 = u[1, i] - u1
+        x2 = u[2, i] - u2
+        y0 = z0 + b0 * x0
+        y1 = z1 + b0 * x1
+        y2 = z2 + b0 * x2
+        z0 = x0 * b1 - y0 * a1
+        z1 = x1 * b1 - y1 * a1
+        z2 = x2 * b1 - y2 * a1
+        if r < rows.shape[0] and rows[r] == i:
+            out[0, r] = y0 + u0
+            out[1, r] = y1 + u1
+            out[2, r] = y2 + u2
+            r += 1
 
 
 def sliding_windows(ok: np.ndarray, length: int, trim: int) -> np.ndarray:
@@ -118,11 +190,13 @@ class _LagProblem:
         # the Stribeck excess over the Coulomb level: Eq. (2) with F_C and b_v set to zero
         excess = stribeck(v, f.F_S_ - f.F_C_, 0.0, f.v_s_, f.alpha_, 0.0)
         self.h = h
-        self.signals = (cumulative_trapezoid(F_p - excess, dx=h, initial=0.0),
-                        cumulative_trapezoid(sgn, dx=h, initial=0.0), np.arange(x.shape[0]) * h)
+        self.signals = np.stack([cumulative_trapezoid(F_p - excess, dx=h, initial=0.0),
+                                 cumulative_trapezoid(sgn, dx=h, initial=0.0),
+                                 np.arange(x.shape[0]) * h])
         group = sliding_windows(ok & (np.abs(v) > V_LAG), max(8, round(LAG_WINDOW / h)),
                                 round(LAG_MARGIN / h))
         self.sel = group >= 0
+        self._rows = np.flatnonzero(self.sel)
         self.group = group[self.sel]
         self.n_groups = int(self.group.max()) + 1 if self.group.size else 0
         self._count = np.bincount(self.group, minlength=self.n_groups).astype(float)
@@ -133,8 +207,8 @@ class _LagProblem:
 
     def design(self, tau: float) -> np.ndarray:
         """Regressors (columns: lagged ∫(F_p - excess), ∫sgn v, t), demeaned per window."""
-        return np.column_stack([self._demean(lag_filter(u, tau, self.h)[self.sel])
-                                for u in self.signals])
+        lagged = lag_filter3(self.signals, tau, self.h, self._rows)
+        return np.column_stack([self._demean(col) for col in lagged])
 
     def rss(self, tau: float) -> float:
         """Residual sum of squares of the best linear fit at ``tau``."""

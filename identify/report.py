@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 
 from pneutune.control.constants import THETA_NAMES, THETA_UNITS, VALVES
@@ -23,7 +24,9 @@ def _plot_valves(r: IdentifyResult, out: Path) -> Path:
     axes = fig.subplots(1, 2)
     for ch, (ax, (meas, model, wt)) in enumerate(zip(axes, v.window_increments(), strict=True)):
         meas, model = meas / 1e3, model / 1e3
-        ax.scatter(meas, model, s=3, c=np.where(wt >= 1.0, "C0", "C1"), alpha=0.5)
+        # one RGBA row per point: matplotlib parses a colour name per point far slower
+        colors = np.where((wt >= 1.0)[:, None], to_rgba("C0"), to_rgba("C1"))
+        ax.scatter(meas, model, s=3, c=colors, alpha=0.5)
         lim = [min(meas.min(), model.min()), max(meas.max(), model.max())]
         ax.plot(lim, lim, "k--", lw=0.8)
         ax.set_xlabel(f"measured Δp_{'ab'[ch]} over {v.window_} samples [kPa]")

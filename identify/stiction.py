@@ -96,6 +96,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.stats import norm
 
@@ -296,14 +297,30 @@ class _Run:
 
 def _rest_runs(x: np.ndarray, B: float, ok: np.ndarray) -> list[_Run]:
     """Maximal runs of samples within +-B of their running mean (see the module docstring)."""
-    n = len(x)
-    runs: list[_Run] = []
+    first, last, centre, after = _rest_run_arrays(np.ascontiguousarray(x, dtype=np.float64),
+                                                  float(B), np.ascontiguousarray(ok, dtype=bool))
+    return [_Run(i, j, c, k) for i, j, c, k in zip(first.tolist(), last.tolist(),
+                                                   centre.tolist(), after.tolist(), strict=True)]
+
+
+@njit(cache=True)
+def _rest_run_arrays(x: np.ndarray, B: float, ok: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_rest_runs` as arrays: each run's i, j, c and k (:class:`_Run`)."""
+    n = x.shape[0]
+    first = np.empty(n, dtype=np.int64)
+    last = np.empty(n, dtype=np.int64)
+    centre = np.empty(n)
+    after = np.empty(n, dtype=np.int64)
+    m = 0
     i = 0
     while i < n:
         if not ok[i]:
             i += 1
             continue
-        total, count, k = x[i], 1, i + 1
+        total = x[i]
+        count = 1
+        k = i + 1
         while k < n and ok[k] and abs(x[k] - total / count) <= B:
             total += x[k]
             count += 1
@@ -312,9 +329,10 @@ def _rest_runs(x: np.ndarray, B: float, ok: np.ndarray) -> list[_Run]:
         c = total / count
         while i < j and abs(x[i] - c) > B:  # the tail of the arrival
             i += 1
-        runs.append(_Run(i, j, float(c), k))
+        first[m], last[m], centre[m], after[m] = i, j, c, k
+        m += 1
         i = k
-    return runs
+    return first[:m], last[:m], centre[:m], after[:m]
 
 
 def _drift_speed(t: np.ndarray, x: np.ndarray, sigma: float) -> float:
@@ -454,40 +472,41 @@ def stiction_bounds(data: Dataset, F_n: float, F_n_half: float,
             continue
         t0, t1 = float(t[r.i]), float(t[r.j])
         # lower bound: every sample with a fitting window inside the interval
-        ks = np.arange(r.i, r.j + 1)
-        g = np.minimum(np.minimum(ks - r.i, r.j - ks), g_max)
-        ks, g = ks[g >= g_min], g[g >= g_min].astype(float)
-        if ks.size:
-            cum = _running_sums(x[r.i:r.j + 1] - r.c)
-            kl = (ks - r.i).astype(float)
-            v, a, se_v, se_a = _local_fit(kl, g, h, sx, cum)
-            creep = (b_v_max * (np.abs(v) + Z_DRIFT * se_v)
-                     + m_max * (np.abs(a) + Z_DRIFT * se_a))
-            # the speed at the shortest scale too: a wide fit smooths over the corner of a
-            # slide-through reversal or a micro-slip
-            vs, _, se_vs, _ = _local_fit(kl, np.full(ks.size, float(g_min)), h, sx, cum)
-            creep = np.maximum(creep, b_v_max * (np.abs(vs) + Z_DRIFT * se_vs))
-            # every sample of the hold window must be covered: the largest margin in it
-            local = np.full(r.j - r.i + 1, np.inf)
-            local[ks - r.i] = creep
-            creep = maximum_filter1d(local, span, mode="constant", cval=np.inf)[ks - r.i]
-            vals = hold[ks] - creep
-            n_tried += ks.size
-            if not np.isfinite(vals).any():
-                ks = ks[:0]
-        if ks.size:
-            best = int(np.argmax(vals))
-            k = int(ks[best])
-            rest.append(StictionEvent("rest", float(t[k]), float(hold_sign[k] * hold[k]),
-                                      float(vals[best]), t0, t1, int(hold_sign[k])))
+        # (a run shorter than 2 g_min + 1 samples has no such sample)
+        if r.j - r.i >= 2 * g_min:
+            ks = np.arange(r.i, r.j + 1)
+            g = np.minimum(np.minimum(ks - r.i, r.j - ks), g_max)
+            ks, g = ks[g >= g_min], g[g >= g_min].astype(float)
+            if ks.size:
+                cum = _running_sums(x[r.i:r.j + 1] - r.c)
+                kl = (ks - r.i).astype(float)
+                v, a, se_v, se_a = _local_fit(kl, g, h, sx, cum)
+                creep = (b_v_max * (np.abs(v) + Z_DRIFT * se_v)
+                         + m_max * (np.abs(a) + Z_DRIFT * se_a))
+                # the speed at the shortest scale too: a wide fit smooths over the corner of a
+                # slide-through reversal or a micro-slip
+                vs, _, se_vs, _ = _local_fit(kl, np.full(ks.size, float(g_min)), h, sx, cum)
+                creep = np.maximum(creep, b_v_max * (np.abs(vs) + Z_DRIFT * se_vs))
+                # every sample of the hold window must be covered: the largest margin in it
+                local = np.full(r.j - r.i + 1, np.inf)
+                local[ks - r.i] = creep
+                creep = maximum_filter1d(local, span, mode="constant", cval=np.inf)[ks - r.i]
+                vals = hold[ks] - creep
+                n_tried += ks.size
+                if np.isfinite(vals).any():
+                    best = int(np.argmax(vals))
+                    k = int(ks[best])
+                    rest.append(StictionEvent("rest", float(t[k]),
+                                              float(hold_sign[k] * hold[k]),
+                                              float(vals[best]), t0, t1, int(hold_sign[k])))
         # upper bound: a confirmed departure from a real stop
         m = r.k
+        if t1 - t0 + h < T_STOP:  # a pause, not a rest that proves a stop
+            continue
         if m + K_CONFIRM > n or not ok[m:m + K_CONFIRM].all():
             continue
         side = 1 if x[m] > r.c else -1
         if not np.all(side * (x[m:m + K_CONFIRM] - r.c) > B):
-            continue
-        if t1 - t0 + h < T_STOP:  # a pause, not a rest that proves a stop
             continue
         if _drift_speed(t[r.i:r.j + 1], x[r.i:r.j + 1], sx) > V_STOP:
             rejected["drifting"] += 1

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.signal import savgol_filter
 
 from pneutune.control.contracts.plant import PlantConfig
@@ -65,29 +66,57 @@ def validate(data: Dataset, held_out: np.ndarray, plant_cfg: PlantConfig,
                                   f"short to validate the model on (--holdout)")
     pa_s = savgol_filter(data.p_a, 9, 2)
     pb_s = savgol_filter(data.p_b, 9, 2)
-    ts, meas, sim = [], [], []
-    # contiguous runs of held-out samples
+    # contiguous runs of held-out samples, cut into windows of at most w samples
     breaks = np.flatnonzero(np.diff(idx) > 1)
-    runs = np.split(idx, breaks + 1)
-    sensors = np.zeros(4)
-    noise = np.zeros(4)
-    for run in runs:
+    starts, lengths = [], []
+    for run in np.split(idx, breaks + 1):
         for start in range(0, len(run) - 1, w):
-            ks = run[start:start + w]
-            k0 = ks[0]
-            s = plant.initial_state(p, float(data.x[k0]), float(pa_s[k0]), float(pb_s[k0]),
-                                    t0=float(data.t[k0]))
-            if abs(data.v[k0]) > 2e-3:
-                s[S_V] = float(data.v[k0])
-                s[S_STUCK] = 0.0
-            for k in ks:
-                plant.measure(p, s, float(data.p_s[k]), noise, sensors)
-                sim.append(sensors[:3].copy())
-                meas.append((data.x[k], data.p_a[k], data.p_b[k]))
-                ts.append(data.t[k])
-                plant.set_duties(p, s, float(s[S_T]), data.u[k])
-                plant.advance(p, s, float(data.t[k]) + Ts, float(data.p_s[k]), pp.force_steps)
-    m = np.asarray(meas)
-    si = np.asarray(sim)
+            starts.append(run[start])
+            lengths.append(min(w, len(run) - start))
+    first = np.asarray(starts, dtype=np.int64)
+    count = np.asarray(lengths, dtype=np.int64)
+    ks = np.concatenate([np.arange(k0, k0 + n) for k0, n in zip(first, count, strict=True)])
+    si = np.empty((ks.size, 3))
+    _simulate_windows(p, pp.force_steps, first, count, _f64(data.x), _f64(pa_s), _f64(pb_s),
+                      _f64(data.v), _f64(data.t), _f64(data.p_s), _f64(data.u), float(Ts), si)
+    m = np.column_stack([data.x[ks], data.p_a[ks], data.p_b[ks]]).astype(np.float64)
     scores = {name: nrmse(si[:, i], m[:, i]) for i, name in enumerate(("x", "p_a", "p_b"))}
-    return Validation(t=np.asarray(ts), measured=m, simulated=si, nrmse=scores)
+    return Validation(t=np.asarray(data.t[ks], dtype=np.float64), measured=m, simulated=si,
+                      nrmse=scores)
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    """``a`` as a C-contiguous float64 array (no copy when it is one)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+@njit(cache=True)
+def _simulate_windows(p: np.ndarray, force_steps: np.ndarray, first: np.ndarray,
+                      count: np.ndarray, x: np.ndarray, pa: np.ndarray, pb: np.ndarray,
+                      v: np.ndarray, t: np.ndarray, p_s: np.ndarray, u: np.ndarray, Ts: float,
+                      out: np.ndarray) -> None:
+    """The plant run through windows of the log: the sensors x, p_a, p_b at each sample.
+
+    Window j covers samples ``first[j] .. first[j] + count[j] - 1``; it starts at rest from
+    the log's position and (smoothed) pressures ``pa``, ``pb`` at its first sample, moving
+    with the log's velocity when that is over 2 mm/s. At each sample the sensors are read
+    (noise-free), then the logged duties are written and the plant advances one ``Ts``.
+    ``out`` gets the rows of all windows in order.
+    """
+    noise = np.zeros(4)
+    sensors = np.zeros(4)
+    row = 0
+    for j in range(first.shape[0]):
+        k0 = first[j]
+        s = plant.initial_state(p, x[k0], pa[k0], pb[k0], t[k0])
+        if abs(v[k0]) > 2e-3:
+            s[S_V] = v[k0]
+            s[S_STUCK] = 0.0
+        for k in range(k0, k0 + count[j]):
+            plant.measure(p, s, p_s[k], noise, sensors)
+            out[row, 0] = sensors[0]
+            out[row, 1] = sensors[1]
+            out[row, 2] = sensors[2]
+            row += 1
+            plant.set_duties(p, s, s[S_T], u[k])
+            plant.advance(p, s, t[k] + Ts, p_s[k], force_steps)

@@ -174,7 +174,7 @@ class TimingCost:
         self._windows = [(np.ascontiguousarray(k0, dtype=np.int64),
                           np.ascontiguousarray(k1, dtype=np.int64)) for k0, k1 in windows]
         self._gains = [np.ascontiguousarray(g, dtype=np.float64) for g in gains]
-        self._flows = [np.ascontiguousarray(f, dtype=np.float64) for f in flows]
+        self._flows = [np.array(f, dtype=np.float64) for f in flows]  # writable copies
         self._targets, self._weights = list(targets), list(weights)
         self._extra = [list(cols) for cols in extra]
         self._keep = keep

@@ -43,11 +43,12 @@ from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 from threadpoolctl import threadpool_limits
 
-from pneutune.control.physics.flow import signed_flow_array
 from pneutune.control.physics.pwm import effective_open_fraction
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
+from .valve_flows import A_IN, A_OUT, B_IN, B_OUT, LEAK, PortFlows
+from .valve_residuals import chamber_window_residuals, knot_window_sums
 from .valve_timing import OpenFractions, Timing, coordinate_search, phase_search, timing_bounds
 
 try:  # scipy's own step rules of jac='2-point' (private: without them, least_squares' default)
@@ -237,6 +238,9 @@ class ValveIdentifier(Identifier):
         self._vol_b = -r.n * self._pb * np.diff(Vb) / self._Vb
         self._p0 = r.p0
         self._T0 = r.T0
+        self._flow = PortFlows([(self._ps, self._pa), (self._pa, r.p0), (self._ps, self._pb),
+                                (self._pb, r.p0), (self._pa, self._pb)], r.T0)
+        self._no_leak = np.zeros_like(self._pa)
         self._Ts = d.Ts
         w = pwm_window(d.Ts, r.pwm_hz)
         #: samples a duty change can take to act fully (a PWM period plus the valve delays)
@@ -282,16 +286,23 @@ class ValveIdentifier(Identifier):
 
     def _flows(self, C: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
         """Fully-open flows of each valve per sample, signed into its chamber [kg/s]."""
-        T0, p0 = self._T0, self._p0
-        return [signed_flow_array(C[0], b[0], self._ps, self._pa, T0),
-                -signed_flow_array(C[1], b[1], self._pa, p0, T0),
-                signed_flow_array(C[2], b[2], self._ps, self._pb, T0),
-                -signed_flow_array(C[3], b[3], self._pb, p0, T0)]
+        flow = self._flow
+        return [flow(A_IN, C[0], b[0]), -flow(A_OUT, C[1], b[1]), flow(B_IN, C[2], b[2]),
+                -flow(B_OUT, C[3], b[3])]
 
     def _window_sum(self, term: np.ndarray, chamber: int) -> np.ndarray:
         c = np.cumsum(term, axis=0)
         c = np.concatenate([np.zeros((1, *c.shape[1:])), c])
         return c[self._k1[chamber]] - c[self._k0[chamber]]
+
+    def _knot_window_sum(self, gain: np.ndarray, weights: np.ndarray, chamber: int
+                         ) -> np.ndarray:
+        """``_window_sum(gain[:, None] * weights, chamber)``, the same floats
+        (:func:`~.valve_residuals.knot_window_sums`)."""
+        out = np.empty((len(self._k0[chamber]), weights.shape[1]))
+        knot_window_sums(np.ascontiguousarray(gain, dtype=float), weights, self._k0[chamber],
+                         self._k1[chamber], out)
+        return out
 
     def _ratios(self, curves: np.ndarray) -> np.ndarray:
         """Open fraction per sample and valve from the PWM curves, (N-1, 4)."""
@@ -303,20 +314,19 @@ class ValveIdentifier(Identifier):
         """Window residuals of chamber ``ch`` [kPa] for the valves' C, b (that chamber's two),
         the leak, D and the open fraction per sample."""
         i = 2 * ch
-        T0 = self._T0
+        phi_in = self._flow(2 * ch, C[0], b[0])  # A_IN or B_IN
+        phi_out = self._flow(2 * ch + 1, C[1], b[1])  # A_OUT or B_OUT, out of the chamber
         if ch == 0:
-            phi_in = signed_flow_array(C[0], b[0], self._ps, self._pa, T0)
-            phi_out = -signed_flow_array(C[1], b[1], self._pa, self._p0, T0)
             V, vol, sgn = self._Va, self._vol_a, -1.0
         else:
-            phi_in = signed_flow_array(C[0], b[0], self._ps, self._pb, T0)
-            phi_out = -signed_flow_array(C[1], b[1], self._pb, self._p0, T0)
             V, vol, sgn = self._Vb, self._vol_b, 1.0
-        L = signed_flow_array(leak, 0.0, self._pa, self._pb, T0) if leak > 0 else 0.0
-        g = self._Ts * self._nRT / V * (ratios[:, i] * phi_in + ratios[:, i + 1] * phi_out
-                                        + sgn * L)
-        m = self._window_sum(g + vol + self._Ts * D, ch)
-        return (m - self._dp[ch]) * weights / 1e3
+        L = self._flow(LEAK, leak, 0.0) if leak > 0 else self._no_leak
+        out = np.empty(len(self._k0[ch]))
+        chamber_window_residuals(self._Ts * self._nRT, V, ratios[:, i], phi_in, ratios[:, i + 1],
+                                 phi_out, sgn, L, vol, self._Ts * D, self._k0[ch],
+                                 self._k1[ch], self._dp[ch], np.asarray(weights, dtype=float),
+                                 out)
+        return out
 
     def _residuals(self, theta: np.ndarray, ratios: np.ndarray,
                    weights: Sequence[np.ndarray] | None = None) -> np.ndarray:
@@ -413,7 +423,7 @@ class ValveIdentifier(Identifier):
 
     def _fit_curves(self, C: np.ndarray, b: np.ndarray, leak: float, D: np.ndarray) -> np.ndarray:
         phi = self._flows(C, b)
-        L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
+        L = self._flow(LEAK, leak, 0.0) if leak > 0 else 0.0
         curves = np.zeros((4, self._K))
         for ch, (i, j, V, vol, Dc, sgn) in enumerate((
                 (0, 1, self._Va, self._vol_a, D[0], -1.0),
@@ -421,8 +431,8 @@ class ValveIdentifier(Identifier):
             dp = self._dp[ch]
             g = self._Ts * self._nRT / V
             known = self._window_sum(vol + self._Ts * Dc + g * sgn * L, ch)
-            Ai = self._window_sum((g * phi[i])[:, None] * self._Wu[i], ch)
-            Aj = self._window_sum((g * phi[j])[:, None] * self._Wu[j], ch)
+            Ai = self._knot_window_sum(g * phi[i], self._Wu[i], ch)
+            Aj = self._knot_window_sum(g * phi[j], self._Wu[j], ch)
             y = dp - known
             wt = self._wt[ch][:, None] / 1e3
             A = np.hstack([Ai, Aj]) * wt
@@ -460,7 +470,7 @@ class ValveIdentifier(Identifier):
         """
         w = self.window_
         rows, rhs, var = [], [], []
-        phi_unit = signed_flow_array(1.0, 0.0, self._pa, self._pb, self._T0)
+        phi_unit = self._flow(LEAK, 1.0, 0.0)
         for ch, (V, vol, p, sgn) in enumerate(((self._Va, self._vol_a, self._pa_raw, -1.0),
                                                (self._Vb, self._vol_b, self._pb_raw, 1.0))):
             uc = self._u[:, 2 * ch:2 * ch + 2]
@@ -690,7 +700,7 @@ class ValveIdentifier(Identifier):
             window sums are linear in them (:class:`.valve_timing.TimingCost`: each valve
             switched alone, its window sums kept, repeated candidates looked up)."""
             unit = self._flows(np.ones(4), b)
-            L = signed_flow_array(leak, 0.0, self._pa, self._pb, self._T0) if leak > 0 else 0.0
+            L = self._flow(LEAK, leak, 0.0) if leak > 0 else 0.0
             gains, targets, extra = [], [], []
             for ch, (V, vol, sgn) in enumerate(((self._Va, self._vol_a, -1.0),
                                                 (self._Vb, self._vol_b, 1.0))):

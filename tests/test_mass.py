@@ -23,7 +23,7 @@ from pneutune.control.rig.identification_run import (
 )
 from pneutune.control.rig.simrig import SimRig
 from pneutune.identify.dataset import load_dataset
-from pneutune.identify.mass import lag_filter, sliding_windows
+from pneutune.identify.mass import lag_filter, lag_filter3, sliding_windows
 from pneutune.identify.pipeline import identify
 
 
@@ -35,6 +35,27 @@ def test_lag_filter_is_exact_on_a_ramp(tau):
     t = np.arange(400) * h
     y = lag_filter(t, tau, h)
     assert y == pytest.approx(t - tau * (1.0 - np.exp(-t / tau)), abs=1e-12)
+
+
+@pytest.mark.parametrize("tau", [5e-6, 3e-4, 0.05])
+def test_lag_filters_are_scipys_lfilter_bit_for_bit(tau):
+    """The compiled filters give the floats of the scipy.signal.lfilter form they replace, on
+    rough signals; lag_filter3 the same at the samples kept."""
+    from scipy.signal import lfilter
+
+    h = 5e-4
+    rng = np.random.default_rng(7)
+    signals = np.stack([np.cumsum(rng.normal(size=5000)) * 1e3,
+                        np.cumsum(np.sign(rng.normal(size=5000))) * h,
+                        np.arange(5000) * h])
+    phi = np.exp(-h / tau)
+    c = tau * (1.0 - phi) / h
+    rows = np.flatnonzero(rng.uniform(size=5000) < 0.4)
+    lagged = lag_filter3(signals, tau, h, rows)
+    for u, kept in zip(signals, lagged, strict=True):
+        ref = lfilter([1.0 - c, c - phi], [1.0, -phi], u - u[0]) + u[0]
+        assert np.array_equal(lag_filter(u, tau, h), ref)
+        assert np.array_equal(kept, ref[rows])
 
 
 def test_sliding_windows():

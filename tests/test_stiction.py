@@ -219,6 +219,38 @@ def test_noise_estimates(logs):
         assert src.startswith(source)
 
 
+def test_rest_runs_as_the_definition_says():
+    """The compiled run search gives the runs of its definition (module docstring), written
+    out in Python: maximal runs within +-B of their running mean, the arrival's tail dropped,
+    masked samples in none."""
+
+    def reference(x, B, ok):
+        runs, i, n = [], 0, len(x)
+        while i < n:
+            if not ok[i]:
+                i += 1
+                continue
+            total, count, k = x[i], 1, i + 1
+            while k < n and ok[k] and abs(x[k] - total / count) <= B:
+                total += x[k]
+                count += 1
+                k += 1
+            j, c = k - 1, total / count
+            while i < j and abs(x[i] - c) > B:
+                i += 1
+            runs.append((i, j, float(c), k))
+            i = k
+        return runs
+
+    rng = np.random.default_rng(5)
+    steps = np.where(rng.uniform(size=4000) < 0.3, rng.normal(0.0, 1e-4, 4000), 0.0)
+    x = np.cumsum(steps) + rng.normal(0.0, 1e-6, 4000)
+    ok = rng.uniform(size=4000) > 0.02
+    runs = stiction._rest_runs(x, 4.5e-6, ok)
+    assert [(r.i, r.j, r.c, r.k) for r in runs] == reference(x, 4.5e-6, ok)
+    assert any(r.j - r.i > 10 for r in runs)
+
+
 def test_local_fit_recovers_a_parabola():
     """The creep margin's local least-squares quadratic (running sums over a window of
     2g + 1 samples) is exact on a noise-free creep x = x0 + v0 t + a t^2 / 2 of a rest

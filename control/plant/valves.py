@@ -276,6 +276,28 @@ def open_fractions(p: np.ndarray, s: np.ndarray, duties: np.ndarray, t0: float, 
             out[k, i] /= Ts
 
 
+@njit(cache=True, inline="always")
+def _rest_level(s: np.ndarray, u: float) -> float:
+    """0.0 or 1.0 when duty ``u`` leaves valve 0 of state ``s`` at rest for a whole sample, else
+    -1.0.
+
+    At rest: the valve shut (open) with its command, latched duty and comparator signal at 0
+    (1), nothing pending, and ``u`` clipped to the same 0 (1). Then :func:`write_duty` and
+    every :func:`valve_events` of the sample leave the state as it is (the comparator gives 0
+    (1) at every time, so no edge, no transition, no latching of another duty).
+    """
+    if s[S_NPEND] != 0.0:
+        return -1.0
+    level = s[S_OPEN]
+    if not (u > 0.0):
+        u = 0.0
+    elif u > 1.0:
+        u = 1.0
+    if u == level and s[S_SIG] == level and s[S_DUTY] == level and s[S_CMD] == level:
+        return level
+    return -1.0
+
+
 @njit(cache=True)
 def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
                          phases: np.ndarray, Ts: float, out: np.ndarray) -> None:
@@ -290,7 +312,9 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
     :func:`open_fractions` sums each sample's open time over the finer grid of all four valves'
     events, which rounds differently (a few 1e-12 of the fraction on a 144 s log); the switching
     itself is the same, since the valves do not interact. For searches that vary one valve at a
-    time.
+    time. A sample that leaves the valve at rest (shut with duty 0, or open with duty 1, nothing
+    pending: :func:`_rest_level`) has no event that changes anything; its open time is summed
+    without them, over the same intervals (the same floats).
 
     Parameters
     ----------
@@ -325,6 +349,21 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
             t = t0 + k * Ts
             t_end = t0 + (k + 1) * Ts
             acc = 0.0
+            level = _rest_level(s, duties[k])
+            if level == 0.0:  # shut and kept shut: no event changes anything
+                out[m, k] = 0.0
+                continue
+            if level == 1.0:  # open and kept open: the same open time, without the events
+                while t < t_end - EPS_T:
+                    kp = _period_index(t, period)
+                    t_next = t_end
+                    t_ps = (kp + 1.0) * period
+                    if t_ps < t_next:
+                        t_next = t_ps
+                    acc += t_next - t
+                    t = t_next
+                out[m, k] = acc / Ts
+                continue
             write_duty(q, s, 0, duties[k])
             valve_events(q, s, 0, t, latched and _at_period_start(q, t))
             while t < t_end - EPS_T:
