@@ -32,6 +32,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,7 @@ from .mass_prior import mass_prior
 from .motion import V_SLIDE, FrictionIdentifier, MassIdentifier
 from .stiction import StictionBounds, force_noise_std, position_noise_std, stiction_bounds
 from .validation import Validation, validate
-from .valves import ValveIdentifier, _longest_run
+from .valves import LOOP_DELAY_TOLERANCE, ValveIdentifier, _longest_run
 
 #: An interval wider than this ratio (hi / lo) means "not identifiable".
 MASS_IDENTIFIABLE_RATIO = 1.5
@@ -653,6 +654,7 @@ def _plant(data: Dataset, valves: ValveIdentifier, friction: FrictionIdentifier,
                        "min_pulse": sw["min_pulse"]}
     f = friction
     return PlantConfig.model_validate({
+        "io": {"delay": float(valves.loop_delay_ or 0.0)},
         "rig": data.rig.model_dump(), "mass": float(mass), "payload": 0.0,
         "friction": {"F_S": f.F_S_, "F_C": f.F_C_, "v_s": f.v_s_, "alpha": f.alpha_,
                      "b_v": f.b_v_},
@@ -940,7 +942,39 @@ def _model(data: Dataset, logs: Dataset | Sequence[Dataset], valves: ValveIdenti
         "basis": basis,
         "notes": notes,
     }
+    data_dict.update(_loop_delay(valves, vdict, basis))
     return ModelConfig.model_validate(data_dict), Ranges(basis, frozenset(unsupported))
+
+
+def _loop_delay(valves: ValveIdentifier, vdict: dict[str, dict[str, Any]],
+                basis: dict[str, str]) -> dict[str, Any]:
+    """model.yaml's ``effects.io.delay`` and ``loop_delay`` from the timing stage (none
+    without it), with their bases added to ``basis``.
+
+    ``io.delay`` is the part of the loop delay the valves' delays do not hold: a duty acting
+    later than its sample, which the log separates only where it holds both steady duties
+    (valve tests) and changing ones (a closed loop). ``loop_delay`` is the whole of it, from a
+    written duty to the chamber flow's response: the valves' opening delays plus ``io.delay``.
+    """
+    if valves.loop_delay_ is None or valves.loop_delay_range_ is None:
+        return {}
+    d = float(valves.loop_delay_)
+    lo, hi = (float(x) for x in valves.loop_delay_range_)
+    grid, costs = valves.loop_delay_costs_
+    best = (f"best {d * 1e3:g} ms, against which none leaves {costs[0] / costs.min():.3g} "
+            f"times the residual" if d > 0.0 else "best none")
+    basis["io.delay"] = (
+        f"data: the chamber fit's residual over duties acting 0-{grid[-1] * 1e3:g} ms after "
+        f"their samples, with the valves' delays as fitted: every delay within "
+        f"{LOOP_DELAY_TOLERANCE:.0%} of the best ({best}); the valves' delays hold the rest "
+        f"of the loop delay")
+    ons = [float(v["delay_on"]) for v in vdict.values()]
+    basis["loop_delay"] = (
+        "data: the valves' opening delays (shortest to longest) plus io.delay's range: from a "
+        "written duty to the chamber flow")
+    return {"effects": {"io.delay": {"nominal": d, "range": [lo, hi]}},
+            "loop_delay": {"nominal": float(np.mean(ons)) + d,
+                           "range": [min(ons) + lo, max(ons) + hi]}}
 
 
 def _curve_points(knots: np.ndarray, curve: np.ndarray) -> tuple[list[float], list[float]]:

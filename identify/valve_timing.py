@@ -41,7 +41,11 @@ from numba import njit
 from pneutune.control.contracts.plant import PlantConfig, RigConfig
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
-from pneutune.control.plant.valves import open_fractions, valve_open_fractions
+from pneutune.control.plant.valves import (
+    delayed_open_fractions,
+    open_fractions,
+    valve_open_fractions,
+)
 
 #: Longest delay searched, in PWM periods (the plant allows up to 4).
 MAX_DELAY_PERIODS = 0.5
@@ -81,6 +85,8 @@ class OpenFractions:
         self.rig = rig
         self.duties = np.ascontiguousarray(duties, dtype=np.float64)
         self.Ts = float(Ts)
+        #: every duty acts this long after its sample [s] (a loop delay: IO, not the valves')
+        self.write_delay = 0.0
         self._p = pack_plant(PlantConfig(rig=rig)).vec.copy()
         self._out = np.zeros_like(self.duties)
         self._columns = [np.ascontiguousarray(self.duties[:, i]) for i in range(4)]
@@ -94,6 +100,9 @@ class OpenFractions:
         phase : float
             Carrier time at the first sample, in [0, 1/pwm_hz) [s].
         """
+        if self.write_delay > 0.0:  # valve by valve (they do not interact)
+            return np.column_stack([self.valve(i, [tm], phase)[0]
+                                    for i, tm in enumerate(timings)])
         p = self._p
         for i, tm in enumerate(timings):
             p[P_DON + i] = tm.delay_on
@@ -129,7 +138,11 @@ class OpenFractions:
                        for t in timings], dtype=np.float64).reshape(-1, 3)
         phases = np.full(tm.shape[0], float(phase))
         out = np.empty((tm.shape[0], self.duties.shape[0]))
-        valve_open_fractions(self._p, self._columns[i], tm, phases, self.Ts, out)
+        if self.write_delay > 0.0:
+            delayed_open_fractions(self._p, self._columns[i], tm, phases, self.Ts,
+                                   self.write_delay, out)
+        else:
+            valve_open_fractions(self._p, self._columns[i], tm, phases, self.Ts, out)
         return out
 
 
@@ -190,7 +203,7 @@ class TimingCost:
         return float(tm.delay_on), float(tm.delay_off), float(min(tm.min_pulse, tm.delay_on))
 
     def _column(self, i: int, tm: Timing, phase: float) -> np.ndarray:
-        key = (i, *self._key(tm), phase)
+        key = (i, *self._key(tm), phase, self.frac.write_delay)
         col = self._columns.get(key)
         if col is not None:
             self._columns.move_to_end(key)
@@ -218,7 +231,8 @@ class TimingCost:
         """
         phase = float(phase)
         self.evaluations += 1
-        key = (ch, *self._key(timings[2 * ch]), *self._key(timings[2 * ch + 1]), phase)
+        key = (ch, *self._key(timings[2 * ch]), *self._key(timings[2 * ch + 1]), phase,
+               self.frac.write_delay)
         cost = self._costs.get(key)
         if cost is not None:
             self.repeats += 1

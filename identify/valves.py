@@ -65,6 +65,10 @@ _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
 B_PRIOR, B_PRIOR_SD = 0.25, 0.1
 #: Duty below which a sample does not count as "the valve was commanded open".
 _OPEN_DUTY = 1e-6
+#: Loop delays scanned, evenly over [0, Ts] (0.5 ms apart at Ts = 4 ms).
+LOOP_DELAY_POINTS = 9
+#: Relative cost advantage a loop delay needs over none, and the tolerance of its range.
+LOOP_DELAY_TOLERANCE = 0.05
 
 
 @contextlib.contextmanager
@@ -617,6 +621,11 @@ class ValveIdentifier(Identifier):
                                   f_scale=self.f_scale)
         theta = sol.x
         self.timing_ = None
+        #: the loop delay (every duty acting this long after its sample) and its range [s];
+        #: None without the timing stage
+        self.loop_delay_: float | None = None
+        self.loop_delay_range_: tuple[float, float] | None = None
+        self._loop_delay_span = (0.0, 0.0)
         self.ratios_ = self._ratios(curves)
         if self.timing:
             exact = self._fit_timing(data, theta, lo, hi, curves)
@@ -780,6 +789,8 @@ class ValveIdentifier(Identifier):
             search(b, phase, step * period, levels=2)
             theta = refit(phase)
             b = theta[1:8:2].copy()
+        theta, b = self._fit_loop_delay(frac, cost_for, search, refit, timings, phase, b, theta,
+                                        data.Ts, period)
         ratios = frac(timings, phase)[:-1]
         sol = self._least_squares(theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
@@ -793,10 +804,48 @@ class ValveIdentifier(Identifier):
             return None
         self.timing_ = tuple(timings)
         self.phase_ = phase
+        self.loop_delay_ = frac.write_delay
+        self.loop_delay_range_ = self._loop_delay_span
         new_curves = np.array([effective_open_fraction(self.knots_, period, t.delay_on,
                                                        t.delay_off, t.min_pulse)
                                for t in timings])
         return sol, new_curves, ratios
+
+    def _fit_loop_delay(self, frac: OpenFractions, cost_for: Callable[..., Any],
+                        search: Callable[..., None], refit: Callable[[float], np.ndarray],
+                        timings: list[Timing], phase: float, b: np.ndarray, theta: np.ndarray,
+                        Ts: float, period: float) -> tuple[np.ndarray, np.ndarray]:
+        """Search a loop delay: every duty acting ``d`` after its sample (an IO delay).
+
+        A common shift of the valves' own delays explains a loop delay where the duties change
+        every sample (a closed loop), but not where they are steady for whole PWM periods (the
+        valve tests), since the carrier, not the write, times the pulses there. So a log with
+        both shows it, and a closed-loop log alone leaves it in the valves' delays (its cost is
+        flat or rises with d). ``d`` is scanned over [0, Ts] with the timings held; where a
+        delay beats none by more than :data:`LOOP_DELAY_TOLERANCE`, the timings are searched
+        again with it. The range holds every scanned delay within that tolerance of the best,
+        widened by half a grid step (``loop_delay_range_``). Returns the refitted theta and b.
+        """
+        cost = cost_for(b)
+        grid = np.linspace(0.0, Ts, LOOP_DELAY_POINTS)
+        costs = []
+        for d in grid:
+            frac.write_delay = float(d)
+            costs.append(sum(cost(ch, timings, phase) for ch in range(2)))
+        frac.write_delay = 0.0
+        c = np.asarray(costs)
+        self.loop_delay_costs_ = (grid, c)
+        k = int(np.argmin(c))
+        if k > 0 and c[k] * (1.0 + LOOP_DELAY_TOLERANCE) < c[0]:
+            frac.write_delay = float(grid[k])
+            for step in (0.03, 0.01):
+                search(b, phase, step * period, levels=2)
+                theta = refit(phase)
+                b = theta[1:8:2].copy()
+        near = grid[c <= c.min() * (1.0 + LOOP_DELAY_TOLERANCE)]
+        h = 0.5 * (grid[1] - grid[0])
+        self._loop_delay_span = (max(0.0, float(near.min()) - h), float(near.max()) + h)
+        return theta, b
 
     def window_increments(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per chamber: the measured and the modelled pressure increments over the fit's

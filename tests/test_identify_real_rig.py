@@ -1,5 +1,7 @@
 """identify on a rig with dynamics its model lacks: what it says must be true of the log.
 
+The loop delay: a closed-loop log of a rig whose duties act 2 ms after their samples.
+
 The log is the 0.5 ms identification run of the paper's rig with a 2 ms pressure-transmitter
 lag (``sensors.p_lag``), typical of an industrial transmitter (10-90 % response of a few ms).
 The lag puts the measured pressure force several times further behind the motion than the
@@ -15,9 +17,14 @@ from pathlib import Path
 
 import pytest
 
+from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.rig.identification_run import simulate_identification
+from pneutune.control.sim.closed_loop import simulate_scenario
+from pneutune.control.sim.scenarios import SCENARIOS
 from pneutune.identify.pipeline import identify
+
+ROOT = Path(__file__).resolve().parents[1]
 
 LAGGED = PlantConfig().with_updates({"sensors": {"p_lag": 2.0e-3}})
 
@@ -44,3 +51,26 @@ def test_mass_notes_on_a_lagging_transmitter_are_true(tmp_path: Path) -> None:
     # the prior from the cylinder geometry stands, and holds the true 1.05 kg
     assert "prior from the cylinder geometry" in res.mass_basis, res.mass_basis
     assert res.mass_range[0] <= LAGGED.total_mass <= res.mass_range[1]
+
+
+def test_a_closed_loop_log_gives_the_loop_delay_of_a_rig_with_an_io_delay(tmp_path: Path
+                                                                          ) -> None:
+    """A 12 s closed-loop log at 4 ms (the paper's gains on sine-0.5hz, as ``deploy --log``
+    writes it) of the paper's rig with a 2 ms IO delay: the whole loop delay, from a written
+    duty to the chamber flow, is the IO delay plus a valve's opening delay (2 ms here), 4 ms.
+    model.yaml's ``loop_delay`` range must hold it; the log cannot tell the IO delay from the
+    valves' own (their duties change every sample), so the valves' delays carry it and
+    ``effects.io.delay`` states what is left beyond them."""
+    plant = PlantConfig().with_updates({"io": {"delay": 2.0e-3}})
+    ctl = load_controller(ROOT / "data" / "controller-paper.yaml")
+    res = simulate_scenario(ctl, SCENARIOS["sine-0.5hz"], plant, seed=2)
+    path = tmp_path / "closed-loop.mcap"
+    res.recording().save(path, rig=plant.rig_metadata(), run={"seed": "2"})
+    model = identify(path, seed=0).model
+    true_loop = plant.io.delay + plant.valves.a_in.delay_on
+    assert model.loop_delay is not None
+    lo, hi = model.loop_delay.range
+    assert lo <= true_loop <= hi, (lo, true_loop, hi)
+    # and it says something: narrower than a PWM period's tenth either side (1.7 ms)
+    assert hi - lo < 0.2 / plant.rig.pwm_hz
+    assert model.effects is not None and "io.delay" in model.effects

@@ -240,6 +240,10 @@ class ModelConfig(_Strict):
         None, description="Added: real-rig effects (plant.yaml keys: io.delay, sensors.p_lag, "
         "sensors.x_lag, valves.<valve>.tau_open|tau_close), each with the value the nominal "
         "plant has and the range tune's plant draws sample; absent: none")
+    loop_delay: EffectRange | None = Field(
+        None, description="Added: the whole loop delay, from a written duty to the chamber "
+        "flow's response (the valves' opening delays plus io.delay) [s]; informative, tune "
+        "draws its parts")
     basis: dict[str, str] | None = Field(
         None, description="Added: where each range of the plant coordinates came from, keyed "
         "like tune's plant draws (mass, friction.F_S, valves.a_in.C, ...): 'statistics: ...', "
@@ -253,6 +257,9 @@ class ModelConfig(_Strict):
             _check_range("mass", self.mass_range[0], self.mass, self.mass_range[1])
         if self.effects:
             _check_effects(self.effects)
+        if self.loop_delay is not None:
+            _check_range("loop_delay", self.loop_delay.range[0], self.loop_delay.nominal,
+                         self.loop_delay.range[1])
         return self
 
     @property

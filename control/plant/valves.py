@@ -366,14 +366,59 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
                 continue
             write_duty(q, s, 0, duties[k])
             valve_events(q, s, 0, t, latched and _at_period_start(q, t))
-            while t < t_end - EPS_T:
-                kp = _period_index(t, period)
-                t_next = t_end
-                t_ps = (kp + 1.0) * period
-                if t_ps < t_next:
-                    t_next = t_ps
-                t_next = valve_next_event(q, s, 0, t, kp, t_next)
-                acc += s[S_OPEN] * (t_next - t)
-                t = t_next
-                valve_events(q, s, 0, t, latched and _at_period_start(q, t))
+            out[m, k] = _open_time(q, s, t, t_end, period, latched) / Ts
+
+
+@njit(cache=True, inline="always")
+def _open_time(q: np.ndarray, s: np.ndarray, t: float, t_end: float, period: float,
+               latched: bool) -> float:
+    """Open time of valve 0 of ``s`` from ``t`` to ``t_end``, switching it on the way."""
+    acc = 0.0
+    while t < t_end - EPS_T:
+        kp = _period_index(t, period)
+        t_next = t_end
+        t_ps = (kp + 1.0) * period
+        if t_ps < t_next:
+            t_next = t_ps
+        t_next = valve_next_event(q, s, 0, t, kp, t_next)
+        acc += s[S_OPEN] * (t_next - t)
+        t = t_next
+        valve_events(q, s, 0, t, latched and _at_period_start(q, t))
+    return acc
+
+
+@njit(cache=True)
+def delayed_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
+                           phases: np.ndarray, Ts: float, write_delay: float,
+                           out: np.ndarray) -> None:
+    """:func:`valve_open_fractions` with every duty acting ``write_delay`` after its sample.
+
+    What the plant does with ``io.delay`` (:func:`pneutune.control.plant.dynamics.set_duties`):
+    the duty of sample k is written at ``t_k + write_delay`` (>= 0), so until then the valve
+    runs on the duty before it. The open fraction is still summed over ``[t_k, t_k + Ts)``.
+    Only the identification's search for a loop delay calls it; ``write_delay = 0`` gives what
+    :func:`valve_open_fractions` gives.
+    """
+    period = p[P_TPWM]
+    n = duties.shape[0]
+    latched = p[P_LATCHED] > 0.5
+    shift = math.floor(write_delay / Ts + 1.0e-9)
+    within = write_delay - shift * Ts
+    q = p.copy()
+    s = np.empty(N_STATE)
+    for m in range(timings.shape[0]):
+        q[P_DON] = timings[m, 0]
+        q[P_DOFF] = timings[m, 1]
+        q[P_MINP] = timings[m, 2]
+        s[:] = 0.0
+        t0 = phases[m]
+        for k in range(n):
+            t = t0 + k * Ts
+            t_end = t0 + (k + 1) * Ts
+            t_w = t + within
+            acc = _open_time(q, s, t, t_w, period, latched)
+            if k - shift >= 0:
+                write_duty(q, s, 0, duties[k - shift])
+                valve_events(q, s, 0, t_w, latched and _at_period_start(q, t_w))
+            acc += _open_time(q, s, t_w, t_end, period, latched)
             out[m, k] = acc / Ts
