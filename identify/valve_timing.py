@@ -41,11 +41,7 @@ from numba import njit
 from pneutune.control.contracts.plant import PlantConfig, RigConfig
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
-from pneutune.control.plant.valves import (
-    delayed_open_fractions,
-    open_fractions,
-    valve_open_fractions,
-)
+from pneutune.control.plant.valves import open_fractions, valve_open_fractions
 
 #: Longest delay searched, in PWM periods (the plant allows up to 4).
 MAX_DELAY_PERIODS = 0.5
@@ -138,11 +134,8 @@ class OpenFractions:
                        for t in timings], dtype=np.float64).reshape(-1, 3)
         phases = np.full(tm.shape[0], float(phase))
         out = np.empty((tm.shape[0], self.duties.shape[0]))
-        if self.write_delay > 0.0:
-            delayed_open_fractions(self._p, self._columns[i], tm, phases, self.Ts,
-                                   self.write_delay, out)
-        else:
-            valve_open_fractions(self._p, self._columns[i], tm, phases, self.Ts, out)
+        valve_open_fractions(self._p, self._columns[i], tm, phases, self.Ts, out,
+                             self.write_delay)
         return out
 
 

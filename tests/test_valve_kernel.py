@@ -71,3 +71,38 @@ def test_one_valve_alone_is_the_plants_valve_bit_for_bit(mode: str, valve: int) 
         assert not others.any()
         assert 0.0 < alone[m].mean() < 1.0 and alone[m].max() == pytest.approx(1.0, abs=1e-9)
 
+
+
+@pytest.mark.parametrize("mode", ["immediate", "latched"])
+@pytest.mark.parametrize("write_delay", [1.0e-3, 5.0e-3])
+def test_a_write_delay_switches_the_valve_as_the_plants_io_delay(mode: str,
+                                                                 write_delay: float) -> None:
+    """valve_open_fractions(..., write_delay) against the plant with ``io.delay`` (the duties
+    it writes wait in its state), its valve's state summed on a 10 us grid: the two agree to
+    one grid step of the 4 ms sample (0.0025), and 0 delay gives the undelayed kernel exactly."""
+    from pneutune.control.plant import dynamics
+    from pneutune.control.plant.params import S_OPEN
+
+    Ts, n, dt = 0.004, 120, 1.0e-5
+    pp = pack_plant(PlantConfig().with_updates({"rig": {"pwm_update": mode}}))
+    duties = _duties()[1750:1750 + n].copy()  # a new duty every sample
+    tm = np.array([[2.0e-3, 3.0e-3, 1.5e-3]])
+    got = np.empty((1, n))
+    valve_open_fractions(pp.vec, duties, tm, np.zeros(1), Ts, got, write_delay)
+    rig = pack_plant(PlantConfig().with_updates({"rig": {"pwm_update": mode},
+                                                 "io": {"delay": write_delay}}))
+    s = dynamics.initial_state(rig.vec, 0.02, 2.0e5, 2.0e5)
+    steps = round(Ts / dt)
+    want = np.empty(n)
+    for k in range(n):
+        dynamics.set_duties(rig.vec, s, k * Ts, np.array([duties[k], 0.0, 0.0, 0.0]))
+        acc = 0.0
+        for j in range(steps):
+            dynamics.advance(rig.vec, s, k * Ts + (j + 1) * dt, 6.0e5, rig.force_steps)
+            acc += s[S_OPEN]
+        want[k] = acc / steps
+    assert np.max(np.abs(got[0] - want)) <= dt / Ts + 1e-9
+    plain, zero = np.empty((1, n)), np.empty((1, n))
+    valve_open_fractions(pp.vec, duties, tm, np.zeros(1), Ts, plain)
+    valve_open_fractions(pp.vec, duties, tm, np.zeros(1), Ts, zero, 0.0)
+    assert np.array_equal(plain, zero)

@@ -300,7 +300,8 @@ def _rest_level(s: np.ndarray, u: float) -> float:
 
 @njit(cache=True)
 def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
-                         phases: np.ndarray, Ts: float, out: np.ndarray) -> None:
+                         phases: np.ndarray, Ts: float, out: np.ndarray,
+                         write_delay: float = 0.0) -> None:
     """Open fraction per sample of one valve alone, for several candidate timings in one call.
 
     Candidate ``m`` is the valve with ``timings[m] = (delay_on, delay_off, min_pulse)`` driven by
@@ -331,9 +332,16 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
         Sampling period [s].
     out : ndarray, (M, N)
         Open fraction of ``[phases[m] + k Ts, phases[m] + (k + 1) Ts)``, 0..1.
+    write_delay : float
+        Every duty acts this long after its sample [s], as the plant's ``io.delay`` makes it
+        (:func:`pneutune.control.plant.dynamics.set_duties`): until then the valve runs on the
+        duty before. The open fraction is still summed over the sample (for the search of a
+        loop delay; 0 by default).
     """
     period = p[P_TPWM]
     n = duties.shape[0]
+    shift = math.floor(write_delay / Ts + 1.0e-9)
+    within = write_delay - shift * Ts
     # the valve in slot 0 of a scratch plant: its parameters with the candidate's timing, and
     # the valve slots of a fresh plant state (closed, command low, nothing pending)
     latched = p[P_LATCHED] > 0.5
@@ -348,6 +356,14 @@ def valve_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
         for k in range(n):
             t = t0 + k * Ts
             t_end = t0 + (k + 1) * Ts
+            if write_delay > 0.0:  # the earlier duty until the write, then this sample's
+                t_w = t + within
+                acc = _open_time(q, s, t, t_w, period, latched)
+                if k - shift >= 0:
+                    write_duty(q, s, 0, duties[k - shift])
+                    valve_events(q, s, 0, t_w, latched and _at_period_start(q, t_w))
+                out[m, k] = (acc + _open_time(q, s, t_w, t_end, period, latched)) / Ts
+                continue
             acc = 0.0
             level = _rest_level(s, duties[k])
             if level == 0.0:  # shut and kept shut: no event changes anything
@@ -385,40 +401,3 @@ def _open_time(q: np.ndarray, s: np.ndarray, t: float, t_end: float, period: flo
         t = t_next
         valve_events(q, s, 0, t, latched and _at_period_start(q, t))
     return acc
-
-
-@njit(cache=True)
-def delayed_open_fractions(p: np.ndarray, duties: np.ndarray, timings: np.ndarray,
-                           phases: np.ndarray, Ts: float, write_delay: float,
-                           out: np.ndarray) -> None:
-    """:func:`valve_open_fractions` with every duty acting ``write_delay`` after its sample.
-
-    What the plant does with ``io.delay`` (:func:`pneutune.control.plant.dynamics.set_duties`):
-    the duty of sample k is written at ``t_k + write_delay`` (>= 0), so until then the valve
-    runs on the duty before it. The open fraction is still summed over ``[t_k, t_k + Ts)``.
-    Only the identification's search for a loop delay calls it; ``write_delay = 0`` gives what
-    :func:`valve_open_fractions` gives.
-    """
-    period = p[P_TPWM]
-    n = duties.shape[0]
-    latched = p[P_LATCHED] > 0.5
-    shift = math.floor(write_delay / Ts + 1.0e-9)
-    within = write_delay - shift * Ts
-    q = p.copy()
-    s = np.empty(N_STATE)
-    for m in range(timings.shape[0]):
-        q[P_DON] = timings[m, 0]
-        q[P_DOFF] = timings[m, 1]
-        q[P_MINP] = timings[m, 2]
-        s[:] = 0.0
-        t0 = phases[m]
-        for k in range(n):
-            t = t0 + k * Ts
-            t_end = t0 + (k + 1) * Ts
-            t_w = t + within
-            acc = _open_time(q, s, t, t_w, period, latched)
-            if k - shift >= 0:
-                write_duty(q, s, 0, duties[k - shift])
-                valve_events(q, s, 0, t_w, latched and _at_period_start(q, t_w))
-            acc += _open_time(q, s, t_w, t_end, period, latched)
-            out[m, k] = acc / Ts
