@@ -1,6 +1,6 @@
 """Fleet benchmark: identify -> tune on random plants and every kind of log, scored on the truth.
 
-For each of ``--plants`` seeded random plants (:func:`fleet_plant`, the spread of issue 11:
+For each of ``--plants`` seeded random plants (:func:`fleet_plant`, a spread of:
 friction F_C 30-120 N, F_S/F_C 1.1-1.8, v_s 2-8 mm/s, alpha 1-3, b_v 1500-5000 N s/m, valve C
 ±30 % and b 0.12-0.30 per valve, delays 1-4 ms, minimum pulse 1-3 ms, payload 0-1.5 kg, a seal
 leak, sensor noise, both PWM update modes) and each log kind

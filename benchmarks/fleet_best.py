@@ -1,4 +1,4 @@
-"""The best controller ever tuned for each fleet plant: how far issue 12's E_p target is.
+"""The best controller ever tuned for each fleet plant: how far the E_p target is.
 
 Re-scores every ``DIR/plantNN/<kind>/tune/controller.yaml`` under the given fleet output
 folders (``benchmarks/fleet.py --out DIR``, any kinds, trials, tune seeds or ``--draws``) on

@@ -1,4 +1,4 @@
-"""What the valves' dead zone and the latched PWM update cost the tuned controller (issue 12).
+"""What the valves' dead zone and the latched PWM update cost the tuned controller.
 
 For fleet plants (:func:`fleet.fleet_plant`), this changes the true plant in one respect and
 tunes on it as ``fleet.py --kinds t`` does (the changed plant read as a model, ranges ±20 %,

@@ -91,7 +91,7 @@ class FrictionConfig(_Strict):
     break-away the piston creeps micrometres on the bristles' stiffness instead of sticking.
 
     Only b_v = 3500 N s/m is in the paper. Not in the paper: F_S, F_C, v_s and alpha; the
-    defaults are plausible for a 100 mm bore cylinder (DESIGN.md: F_C tens of newtons, F_S above
+    defaults are plausible for a 100 mm bore cylinder (F_C tens of newtons, F_S above
     F_C, Stribeck velocity a few mm/s) and consistent with the paper's nominal A_f = 100 N of the
     smooth model, which must cover F_C plus part of the Stribeck excess.
     """

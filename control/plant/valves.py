@@ -6,7 +6,7 @@ Command signal
     A sawtooth carrier of period ``T_pwm = 1/pwm_hz`` starts at t = 0. The command signal of a
     valve is on while the carrier phase (0..1) is below its duty ``u``: an edge-aligned PWM, on
     from each period start for ``u T_pwm``. ``u >= 1`` is always on, ``u <= 0`` always off.
-How a new duty acts (``rig.pwm_update``; the paper is silent, DESIGN.md)
+How a new duty acts (``rig.pwm_update``; the paper is silent)
     ``immediate``: the comparator uses the new duty at once, so a duty written mid-period can
     end the current pulse early or start one. ``latched``: the new duty is used from the next
     period start (a double-buffered compare register).
