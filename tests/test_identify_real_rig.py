@@ -53,6 +53,7 @@ def test_mass_notes_on_a_lagging_transmitter_are_true(tmp_path: Path) -> None:
     assert res.mass_range[0] <= LAGGED.total_mass <= res.mass_range[1]
 
 
+@pytest.mark.slow
 def test_a_closed_loop_log_gives_the_loop_delay_of_a_rig_with_an_io_delay(tmp_path: Path
                                                                           ) -> None:
     """A 12 s closed-loop log at 4 ms (the paper's gains on sine-0.5hz, as ``deploy --log``
