@@ -6,7 +6,7 @@ Stribeck peak lasts less than a control sample. Stiction itself bounds it from b
 rest away from the end stops carries a net applied force ``|F| <= F_S``, and it breaks away,
 in the direction of the force, when ``|F|`` reaches F_S. Here ``F = A_a p_a - A_b p_b - p0 A_r
 + F_n`` from the measured pressures and the constant force F_n (known to ``+-F_n_half``). Only
-``/rig/sensors`` and ``/rig/valves`` are used (DESIGN.md, contract 1), at the rate the log was
+``/rig/sensors`` and ``/rig/valves`` are used (contract 1), at the rate the log was
 sampled (0.5 ms identification run, 4 ms closed loop); no labels, no simulator truth.
 
 Rest intervals

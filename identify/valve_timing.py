@@ -12,7 +12,7 @@ by 15-50 % (benchmarks/fleet.py).
 The opening per sample is computed here exactly as the simulated rig switches its valves
 (:func:`pneutune.control.plant.valves.open_fractions`: the edge-aligned PWM carrier at
 ``rig.pwm_hz``,
-the update mode, delays and the minimum pulse; DESIGN.md), given three numbers per valve
+the update mode, delays and the minimum pulse), given three numbers per valve
 (``delay_on``, ``delay_off``, ``min_pulse``) and the carrier phase at the log's first sample.
 Those are found by search (:func:`coordinate_search`, :func:`phase_search`) on the chamber
 equations, whose fit is very sensitive to them: on a closed-loop log of a simulated rig, 0.3 ms

@@ -70,7 +70,7 @@ def test_protocol_stays_inside_the_stroke(x_min, x_max, Ts):
 
 def test_protocol_rejects_a_bad_stroke_or_staircase():
     """The stroke must be positive and a staircase must ascend within (0, 1] (errors state the
-    rule and the values, STYLE.md 7)."""
+    rule and the values)."""
     with pytest.raises(ExperimentError, match="x_max > x_min"):
         commissioning_protocol(0.05, 0.0, 0.004)
     for bad in ((0.2, 0.1), (0.0, 0.5), (0.5, 1.2)):
@@ -156,7 +156,7 @@ def test_a_protocol_runs_twice_the_same():
 
 
 def test_same_seed_same_sensors_other_seed_other_noise():
-    """Seeds go into constructors (STYLE.md 10): the same seed gives the same bytes of sensor
+    """Seeds go into constructors: the same seed gives the same bytes of sensor
     data in two runs, another seed other noise."""
     a, b, c = (simulate_commissioning(PLANT, seed=s) for s in (5, 5, 6))
     assert a.sensors_.tobytes() == b.sensors_.tobytes()

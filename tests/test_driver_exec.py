@@ -1,7 +1,7 @@
 """Issue 13 §3: any driver program on the command line (``deploy --rig exec:"CMD ARGS"``) and
 the driver author's conformance check (``python -m pneutune.control.driver check "CMD"``).
 
-Run against three drivers nobody wrote for these tests alone (STYLE.md §16): the shipped
+Run against three drivers nobody wrote for these tests alone: the shipped
 example server, the minimal C driver of docs/examples/rig_driver.c (compiled here with gcc),
 and tests/drivers/broken_driver.py, whose modes each break one conformance check.
 """

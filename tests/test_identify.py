@@ -1,5 +1,5 @@
 """identify: recover the truth from simulated identification runs of plants that differ from the
-defaults (STYLE.md §6: one recover-the-truth suite), bad logs, model.yaml round trip.
+defaults (one recover-the-truth suite), bad logs, model.yaml round trip.
 
 The truth is the plant.yaml each log was simulated from. Tolerances are issue 4's: C and b within
 5 %, F_C and b_v within 10 %, M within 5 %, θ bounds containing the truth. The identification

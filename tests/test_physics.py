@@ -1,7 +1,7 @@
 """The simulated rig against closed-form physics (the paper's Sec. 2, Eqs. 1-7).
 
 Every expected value below is derived in a comment from the equation it tests, with the rig
-values of the paper (Sec. 5.1) or of plant.yaml's defaults (DESIGN.md, contract 2). Sensor noise
+values of the paper (Sec. 5.1) or of plant.yaml's defaults (contract 2). Sensor noise
 is switched off wherever a closed form is compared with. Tolerances: RK4 integrates a constant
 right-hand side exactly and an exponential with a local error of (h k)^5 / 120 ~ 1e-17 at
 h k ~ 1e-3, so those closed forms are held to ~1e-9 relative (float rounding), not to an
@@ -186,7 +186,7 @@ def test_closed_valves_conserve_p_v_to_the_n() -> None:
 
 
 def test_seal_leak_conserves_air_and_follows_iso6358_with_b_zero() -> None:
-    """The A<->B seal leak (DESIGN.md: ISO 6358 form with b = 0), valves closed.
+    """The A<->B seal leak (ISO 6358 form with b = 0), valves closed.
 
     * At t = 0, piston held on the x_max stop (p_a = 5 bar > p_b = 2 bar pushes it there):
       mdot = C rho0 p_a sqrt(T_ref/T0) sqrt(1 - (p_b/p_a)^2) out of A and into B.
@@ -238,7 +238,7 @@ def test_constant_pressure_disturbances_d_a_d_b() -> None:
 
 @pytest.mark.parametrize("payload", [0.0, 1.136])
 def test_acceleration_uses_mass_plus_payload(payload: float) -> None:
-    """Eq. (1) with M = mass + payload (DESIGN.md: sine-0.5hz-heavy carries 1.136 kg): friction
+    """Eq. (1) with M = mass + payload (sine-0.5hz-heavy carries 1.136 kg): friction
     off, a 50 N step from a balanced rest gives a = 50 N / M the instant it acts. Read 0.1 ms
     later, the air spring has only taken k x = k a t^2 / 2 ~ 0.05 N of it: tolerance 0.2 %."""
     pp = _params(NO_FRICTION, {"payload": payload,
@@ -442,7 +442,7 @@ def test_a_steep_law_tracks_as_with_a_10_us_step() -> None:
 
 
 def test_a_slow_move_sticks_alike_at_any_step_size() -> None:
-    """Stick-slip does not depend on the integration step (DESIGN.md: the plant is converged in
+    """Stick-slip does not depend on the integration step (the plant is converged in
     dt). The commissioning run's ±2 and ±5 mm/s moves on the paper's rig, noise-free: the time
     stuck and the distance agree between dt = 0.4 ms (the default) and 0.05 ms, and the
     distance equals ∫v dt of /sim/truth (sampled every 0.5 ms: a slip lasts a few ms, which
@@ -500,7 +500,7 @@ def test_a_sliding_piston_stops_where_its_velocity_reaches_zero() -> None:
     (_duties(a_out=1.0, b_in=1.0), X_MIN, -500.0),
 ])
 def test_end_stops_hold(duties: np.ndarray, stop: float, f_push: float) -> None:
-    """End stops: x stays in [x_min, x_max] (DESIGN.md: the stroke is [-1.5, 48.5] mm) and,
+    """End stops: x stays in [x_min, x_max] (the stroke is [-1.5, 48.5] mm) and,
     once driven at full duty into a stop (mode 1 -> x_max, mode 2 -> x_min), the piston stays
     on it with v = 0, also when an extra 500 N pushes it into the stop from t = 0.6 s.
     Checked every 0.1 ms, so an overshoot between samples would show.
@@ -699,7 +699,7 @@ def test_measured_open_fraction_matches_delays_and_min_pulse(mode: str, valve: d
     ("latched", 1.0 / 60.0 + 2.0e-3),  # from the next period start
 ])
 def test_pwm_update_mode_decides_when_a_new_duty_acts(mode: str, opens_at: float) -> None:
-    """DESIGN.md (rig.pwm_update): duty 0.5 written at 0.3 T. Immediate: carrier phase 0.3 <
+    """rig.pwm_update: duty 0.5 written at 0.3 T. Immediate: carrier phase 0.3 <
     0.5, the command goes on at once and the valve opens delay_on = 2 ms later. Latched: the
     duty takes effect at the next period start T, the valve opens at T + 2 ms."""
     pp = _params({"rig": {"pwm_update": mode}})
@@ -848,7 +848,7 @@ def test_flow_regularisation_is_small() -> None:
 
 
 def _tracking_metrics(dt: float, mode: str) -> tuple[float, float]:
-    """E_p = max |e| and E_rms over the last three periods (DESIGN.md metrics) [mm] of
+    """E_p = max |e| and E_rms over the last three periods (the paper's Sec. 5.1 indices) [mm] of
     17.5 sin(pi t) mm around mid-stroke, 10 s, tracked by the proportional position loop of
     the identification run (band 2.5 mm) through the SimRig (default sensor noise, seed 1)."""
     cfg = PlantConfig().with_updates({"sim": {"dt": dt}, "rig": {"pwm_update": mode}})

@@ -1,5 +1,5 @@
-"""A seeded identification run repeats bit for bit in another process (issue 2; STYLE.md 10:
-seeds go into constructors, no global random state), and another seed gives another log."""
+"""A seeded identification run repeats bit for bit in another process (seeds go
+into constructors, no global random state), and another seed gives another log."""
 
 from __future__ import annotations
 

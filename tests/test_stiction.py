@@ -273,7 +273,7 @@ def test_local_fit_recovers_a_parabola():
 
 def test_mask_limits_the_samples(logs):
     """Only samples where mask is True are used: none gives no bounds; a mask of the wrong
-    length is an error that states the rule and the values (STYLE.md 7)."""
+    length is an error that states the rule and the values."""
     data, _ = logs["paper-1.5", "commissioning"]
     b = stiction_bounds(data, 0.0, 2.0, mask=np.zeros(data.n, dtype=bool))
     assert b.lo is None and b.hi is None and b.n_rest == 0

@@ -81,7 +81,7 @@ from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, Scenario, resolve_
 from .plants import PlantDraw, draw_plants
 from .space import VARIANTS, SearchSpace, controller_from_params, search_space
 
-#: Default scenarios: Table 1, then the disturbance run (DESIGN.md).
+#: Default scenarios: Table 1, then the disturbance run.
 DEFAULT_SCENARIOS: tuple[str, ...] = (*GROUPS["table1"], "disturbance-0.5hz")
 #: Value reported for a trial stopped by an unstable or aborted run.
 FAIL_VALUE: float = 1.0e3

@@ -81,7 +81,7 @@ examples:
            --plots reports/figs
 
 With several scenarios, --out F.mcap writes F-<scenario>.mcap for each. plant.yaml is merged
-over the paper's rig (DESIGN.md, contract 2). The same seed gives the same numbers in any
+over the paper's rig (contract 2). The same seed gives the same numbers in any
 process.
 """
 

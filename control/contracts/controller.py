@@ -252,7 +252,7 @@ class ControllerConfig(_Strict):
     position_feedback: Literal["measured", "filtered"] = Field(
         "measured", description="Added by pneutune: the position entering e1 = x - x_r and the "
         "chamber volumes: 'measured' (the sensor sample) or 'filtered' (the motion Kalman "
-        "filter's a posteriori estimate). The paper does not say (DESIGN.md).")
+        "filter's a posteriori estimate). The paper does not say (docs/controller.md).")
     original_darc_accel: Literal["filtered", "model"] = Field(
         "filtered", description="Added by pneutune: the dx2/dt in the calculable dF_pd/dt of "
         "original_darc (docs/original_darc.md): 'filtered' (the motion Kalman filter's "

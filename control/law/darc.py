@@ -17,7 +17,7 @@ One step, every Ts (the names are the paper's):
    â. ``x1`` = measured x or x̂ (``position_feedback``), ``x2`` = v̂.
 2. Step 1 (Eqs. 13-17, 20): e1 = x1 - x_r, x2eq = v_r - k1 e1, e2 = x2 - x2eq,
    ẋ2eq = a_r - k1 (x2 - v_r), F_pd = -θ̂2 + θ̂3 x2 + θ̂4 S_f(x2) + θ̂1 ẋ2eq - k2 e2
-   - h2² e2/(4 ε2), with S_f(v) = (2/π) atan(1000 v) (Eq. 4) and h2 a constant (DESIGN.md).
+   - h2² e2/(4 ε2), with S_f(v) = (2/π) atan(1000 v) (Eq. 4) and h2 a constant (docs/controller.md).
 3. F_p = A_a p_a - A_b p_b - p0 A_r (Eq. 8 with the typo p0 A_f -> p0 A_r), e3 = F_p - F_pd.
 4. τ = r2 φ2 e2 + r3 φ3 e3 (Eqs. 17, 26); θ̂ <- clip(θ̂ + Ts sat(Proj(Γτ))) while
    |v_r| > min_ref_speed (Sec. 5.3), else held (:mod:`pneutune.control.law.projection`).

@@ -1,6 +1,6 @@
 """From the desired flow Q_Ld to the four valve duties: Eqs. (32)-(33) and the PWM inverse (numba).
 
-Eq. (32), as corrected (DESIGN.md)
+Eq. (32), as corrected (docs/controller.md)
     Q_L,F is the virtual input Q_L of Eq. (25) with the two valves of the active mode fully open,
     computed from the measured pressures (the paper typesets the B term inside the A fraction)::
 
@@ -12,8 +12,8 @@ Eq. (32), as corrected (DESIGN.md)
     with mdot the ISO 6358 flow of Eq. (7) at upstream temperature T0 (T_a = T_b = T0, Eq. 5).
     Q_L,F >= 0 in both modes (it is the magnitude of the fully-open Q_L) [N/s].
 Eq. (33), as corrected
-    The paper's ``sat(Q_Ld / Q_L)`` is ``sat(Q_Ld / Q_L,F)`` (DESIGN.md): the fraction of the
-    fully-open flow wanted, saturated to [0, 1]. The five cases (:data:`CASE_NAMES`)::
+    The paper's ``sat(Q_Ld / Q_L)`` is ``sat(Q_Ld / Q_L,F)`` (docs/controller.md): the fraction
+    of the fully-open flow wanted, saturated to [0, 1]. The five cases (:data:`CASE_NAMES`)::
 
         1  Q_Ld > 0, Q_L,F = 0:  u(a_in, b_out) = 1,                 u(a_out, b_in) = 0
         2  Q_Ld > 0, Q_L,F > 0:  u(a_in, b_out) = sat(Q_Ld / Q_L,F),  u(a_out, b_in) = 0
@@ -25,8 +25,8 @@ Eq. (33), as corrected
     A non-finite Q_Ld falls into case 3 (all valves closed), the safe state.
 PWM inverse
     ``u`` above is an *effective open fraction*. The valves' delays and minimum pulse make it
-    differ from the commanded duty (DESIGN.md); the controller config holds the measured curve
-    ``pwm: {duty, ratio}`` (effective fraction vs duty, non-decreasing, from (0, 0)).
+    differ from the commanded duty (docs/controller.md); the controller config holds the measured
+    curve ``pwm: {duty, ratio}`` (effective fraction vs duty, non-decreasing, from (0, 0)).
     :func:`pwm_inverse` returns the *smallest* duty whose effective fraction reaches ``u`` on the
     piecewise-linear curve: 0 for u <= 0; inside the dead zone (the curve jumps from 0 to
     ratio_j at the minimum pulse) the duty of the jump, so a small demand gives the smallest

@@ -171,7 +171,7 @@ class Metrics:
     flow_limited: float = float("nan")
 
     def as_dict(self) -> dict[str, float | bool | str]:
-        """Plain dict (the metrics object of DESIGN.md plus the extra fields)."""
+        """Plain dict (the metrics of the run log contract plus the extra fields)."""
         return dict(self.__dict__)
 
 
