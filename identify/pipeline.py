@@ -346,7 +346,7 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     vpl = _valve_pool(pl, fit, notes)
     vfit = vpl.masks(holdout)[0]
     valves = (ValveIdentifier(allow_unopened=True) if partial else ValveIdentifier()).fit(
-        vpl.data, vfit)
+        vpl.data, vfit, fast=full)
     notes += valves.notes_
     friction = _friction(data, fit, mass if mass is not None else 1.0, partial, notes)
     # the mass's lag estimate: every log sampled fast enough, but not a protocol run without the

@@ -43,11 +43,13 @@ from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 from threadpoolctl import threadpool_limits
 
+from pneutune.control.constants import VALVES
 from pneutune.control.physics.pwm import effective_open_fraction
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
 from .valve_flows import A_IN, A_OUT, B_IN, B_OUT, LEAK, PortFlows
+from .valve_onsets import Onset, step_onsets
 from .valve_residuals import chamber_window_residuals, knot_window_sums
 from .valve_timing import OpenFractions, Timing, coordinate_search, phase_search, timing_bounds
 
@@ -69,6 +71,9 @@ _OPEN_DUTY = 1e-6
 LOOP_DELAY_POINTS = 9
 #: Relative cost advantage a loop delay needs over none, and the tolerance of its range.
 LOOP_DELAY_TOLERANCE = 0.05
+#: Slack around a valve's step-onset range when it bounds the opening delay [s] (the onset grid
+#: step, and the carrier-timed opening of the averaged model, are coarser than the search).
+ONSET_MARGIN = 2.5e-4
 
 
 @contextlib.contextmanager
@@ -197,6 +202,11 @@ class ValveIdentifier(Identifier):
         [kPa^2].
     unopened_ : ndarray of bool (4,)
         Valves never commanded open in the fitted part (only with ``allow_unopened``).
+    onsets_ : list of Onset or None
+        Per valve, the delay from a full-opening command to the chamber pressure's response in
+        the fast logs given to :meth:`fit` (:func:`~.valve_onsets.step_onsets`): the timing
+        stage holds each valve's opening delay plus the loop delay inside its range. None
+        where the logs have no such edges.
     """
 
     def __init__(self, knots: np.ndarray | None = None, iterations: int = 3,
@@ -541,8 +551,13 @@ class ValveIdentifier(Identifier):
             hi[i] = value + 1e-6
         return theta, lo, hi
 
-    def fit(self, data: Dataset, mask: np.ndarray | None = None) -> ValveIdentifier:
+    def fit(self, data: Dataset, mask: np.ndarray | None = None,
+            fast: Sequence[Dataset] = ()) -> ValveIdentifier:
         """Fit on the samples where ``mask`` is True (default: all).
+
+        ``fast``: logs of the same rig at their own sampling period, several samples per PWM
+        period (an identification run's 0.5 ms), whose full-opening edges bound each valve's
+        opening delay in the timing stage (``onsets_``).
 
         Raises
         ------
@@ -554,14 +569,15 @@ class ValveIdentifier(Identifier):
         Runs with the BLAS on one thread (:func:`single_blas_thread`).
         """
         with single_blas_thread():
-            return self._fit(data, mask)
+            return self._fit(data, mask, fast)
 
-    def _fit(self, data: Dataset, mask: np.ndarray | None) -> ValveIdentifier:
+    def _fit(self, data: Dataset, mask: np.ndarray | None,
+             fast: Sequence[Dataset] = ()) -> ValveIdentifier:
         """:meth:`fit`, with the BLAS threads as the caller set them."""
         self._path = data.path
+        self._fast = list(fast)
+        self.onsets_: list[Onset | None] = [None] * 4
         mask = np.ones(data.n, dtype=bool) if mask is None else mask
-        from pneutune.control.constants import VALVES
-
         self.unopened_ = np.array([not np.any(data.u[mask, i] > _OPEN_DUTY) for i in range(4)])
         if self.allow_unopened and self.unopened_.all():
             raise IdentificationError(
@@ -668,8 +684,6 @@ class ValveIdentifier(Identifier):
                     f"error; its bound is widened to cover zero")
         self.C_std_ = sd[0:8:2] * _C_UNIT
         self.b_std_ = sd[1:8:2]
-        from pneutune.control.constants import VALVES
-
         for i, name in enumerate(VALVES):
             if self.b_[i] < 1e-3 or self.b_[i] > lo[1] + hi[1] - 1e-3 or self.b_std_[i] > 0.1:
                 self.notes_.append(
@@ -727,6 +741,26 @@ class ValveIdentifier(Identifier):
                               targets, wt, extra)
 
         t_lo, t_hi = timing_bounds(period)
+        if self._fast:
+            self.onsets_ = step_onsets(self._fast, theta[0:8:2] * _C_UNIT, theta[1:8:2], t_hi)
+            seen = [f"{VALVES[i]} {on.delay * 1e3:.2f} ms ({on.low * 1e3:.2f}-"
+                    f"{on.high * 1e3:.2f}, {on.edges} edges)"
+                    for i, on in enumerate(self.onsets_) if on is not None]
+            if seen:
+                self.notes_.append(
+                    f"valves: the chamber pressure follows a full-opening command after "
+                    f"{'; '.join(seen)}: the loop delay plus the valve's opening delay, "
+                    f"armature and line lags and the transmitter's lag; the timing search "
+                    f"keeps each valve's opening delay plus the loop delay in that range")
+
+        def on_bounds(i: int) -> tuple[float, float]:
+            """Range of valve i's opening delay: its onset's less the loop delay."""
+            on = self.onsets_[i]
+            if on is None:
+                return t_lo, t_hi
+            w = frac.write_delay
+            hi_on = min(t_hi, max(t_lo, on.high + ONSET_MARGIN - w))
+            return min(hi_on, max(t_lo, on.low - ONSET_MARGIN - w)), hi_on
 
         def search(b: np.ndarray, phase: float, step: float, levels: int) -> None:
             """Coordinate search of each chamber's two valves over (delay_on, delay_off -
@@ -752,6 +786,9 @@ class ValveIdentifier(Identifier):
                     timings[i].min_pulse)])
                 lo_x = np.tile([t_lo, -t_hi, t_lo], 2)
                 hi_x = np.tile([t_hi, t_hi, t_hi], 2)
+                for j, i in enumerate(pair):
+                    lo_x[3 * j], hi_x[3 * j] = on_bounds(i)
+                x0 = np.clip(x0, lo_x, hi_x)
                 x, _ = coordinate_search(cost, x0, lo_x, hi_x, np.full(6, step), levels=levels)
                 for j, i in enumerate(pair):
                     timings[i] = unpack(x, j)
@@ -769,8 +806,15 @@ class ValveIdentifier(Identifier):
         cost = cost_for(b)
         for i in range(4):
             t = timings[i]
+            on_lo, on_hi = on_bounds(i)
+            if self.onsets_[i] is not None:
+                on0 = float(np.clip(t.delay_on, on_lo, on_hi))
+                t = Timing(on0, max(0.0, t.delay_off + on0 - t.delay_on), min(t.min_pulse, on0))
+                timings[i] = t
             best = (cost(i // 2, timings, 0.0), t)
-            for on in np.linspace(t_lo, 0.8 * t_hi, 9):
+            grid_on = (np.linspace(on_lo, on_hi, 9) if self.onsets_[i] is not None
+                       else np.linspace(t_lo, 0.8 * t_hi, 9))
+            for on in grid_on:
                 for dl in np.linspace(-0.3 * t_hi, 0.5 * t_hi, 9):
                     cand = Timing(on, max(0.0, on + dl), min(t.min_pulse, on))
                     c = cost(i // 2, [*timings[:i], cand, *timings[i + 1:]], 0.0)
@@ -790,7 +834,7 @@ class ValveIdentifier(Identifier):
             theta = refit(phase)
             b = theta[1:8:2].copy()
         theta, b = self._fit_loop_delay(frac, cost_for, search, refit, timings, phase, b, theta,
-                                        data.Ts, period)
+                                        data.Ts, period, on_bounds)
         ratios = frac(timings, phase)[:-1]
         sol = self._least_squares(theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
@@ -814,7 +858,9 @@ class ValveIdentifier(Identifier):
     def _fit_loop_delay(self, frac: OpenFractions, cost_for: Callable[..., Any],
                         search: Callable[..., None], refit: Callable[[float], np.ndarray],
                         timings: list[Timing], phase: float, b: np.ndarray, theta: np.ndarray,
-                        Ts: float, period: float) -> tuple[np.ndarray, np.ndarray]:
+                        Ts: float, period: float,
+                        on_bounds: Callable[[int], tuple[float, float]] | None = None,
+                        ) -> tuple[np.ndarray, np.ndarray]:
         """Search a loop delay: every duty acting ``d`` after its sample (an IO delay).
 
         A common shift of the valves' own delays explains a loop delay where the duties change
@@ -825,19 +871,39 @@ class ValveIdentifier(Identifier):
         delay beats none by more than :data:`LOOP_DELAY_TOLERANCE`, the timings are searched
         again with it. The range holds every scanned delay within that tolerance of the best,
         widened by half a grid step (``loop_delay_range_``). Returns the refitted theta and b.
+
+        Where a valve's step onset (``onsets_``) holds the sum of its opening delay and the loop
+        delay, a candidate ``d`` takes ``d`` off that valve's opening and closing delays (the
+        opening within the onset's range less ``d``, ``on_bounds``): edges timed by a write
+        (the full-opening steps) keep their times, pulses timed by the carrier (steady duties)
+        move ``d`` earlier, and the scan separates the two.
         """
         cost = cost_for(b)
         grid = np.linspace(0.0, Ts, LOOP_DELAY_POINTS)
+
+        def shifted(d: float) -> list[Timing]:
+            """The timings with ``d`` taken off the opening delays an onset holds."""
+            out = list(timings)
+            if on_bounds is None:
+                return out
+            for i, tm in enumerate(timings):
+                if self.onsets_[i] is None:
+                    continue
+                on = float(np.clip(tm.delay_on - d, *on_bounds(i)))
+                out[i] = Timing(on, max(0.0, tm.delay_off - d), min(tm.min_pulse, on))
+            return out
+
         costs = []
         for d in grid:
             frac.write_delay = float(d)
-            costs.append(sum(cost(ch, timings, phase) for ch in range(2)))
+            costs.append(sum(cost(ch, shifted(float(d)), phase) for ch in range(2)))
         frac.write_delay = 0.0
         c = np.asarray(costs)
         self.loop_delay_costs_ = (grid, c)
         k = int(np.argmin(c))
         if k > 0 and c[k] * (1.0 + LOOP_DELAY_TOLERANCE) < c[0]:
             frac.write_delay = float(grid[k])
+            timings[:] = shifted(float(grid[k]))
             for step in (0.03, 0.01):
                 search(b, phase, step * period, levels=2)
                 theta = refit(phase)
