@@ -176,6 +176,12 @@ def _mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit: np.n
             periods = "/".join(f"{h * 1e3:g}" for h in sorted({logs[j].Ts for j in fast}))
             where = (f"{periods} ms samples" if len(names) <= 1 else
                      f"{periods} ms samples of {', '.join(names[j] for j in fast)}")
+            notes.append(
+                f"mass: {lag.M_:.3g} kg from the lag of the measured position behind the "
+                f"measured pressure force, which holds the sensors' lags too: each ms the "
+                f"position sensor lags more than the pressure transmitters adds "
+                f"{friction.b_v_ * 1e-3:.2g} kg (b_v times the lag), each ms less takes it "
+                f"off; where the sensors' datasheets say they differ, give --mass KG")
             return lag.M_, lag.ci_, (
                 f"99 % bootstrap interval of tau b_v, tau the lag of the motion behind the "
                 f"pressure force ({where}), widened by "
