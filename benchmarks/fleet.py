@@ -222,7 +222,7 @@ class Row:
 
     @property
     def on_target(self) -> bool:
-        """Issue 12's quality target: tuned E_p <= 0.20 mm on every Table-1 scenario and
+        """The E_p target: tuned E_p <= 0.20 mm on every Table-1 scenario and
         <= 0.30 mm on disturbance-0.5hz, on the true plant."""
         if not self.e_p:
             return False

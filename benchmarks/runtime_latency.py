@@ -11,7 +11,7 @@ warm-up run):
 * with ``--realtime``: 10 s (``--seconds``) paced to wall time at Ts = 4 ms: overruns, start
   jitter p50/p99/max, schedule slips.
 
-Figures, not assertions (STYLE.md §11); they depend on the machine and its load.
+Figures, not assertions; they depend on the machine and its load.
 
     .venv/bin/python benchmarks/runtime_latency.py [--realtime] [--seconds 10] [--rig sim]
 """

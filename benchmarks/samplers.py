@@ -1,4 +1,4 @@
-"""Best objective against the number of trials for each sampler (issue 12, "The sampler").
+"""Best objective against the number of trials for each sampler (docs/tuning.md, "Sampler").
 
 Runs the same study (same model, objective settings, plant draws, noise and pruner) once per
 sampler and seed, each in a fresh journal in a temporary folder, through the library's own

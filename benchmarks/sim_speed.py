@@ -5,7 +5,7 @@ Prints:
   (a 1 Hz sinusoidal duty switching between modes 1 and 2), after warm-up, best of 5, one core;
 * the numba compile time of the plant, cold (empty cache) and cached (second process).
 
-Target (issue 2): at least 1000x real time.
+Target: at least 1000x real time.
 
     .venv/bin/python benchmarks/sim_speed.py
 """

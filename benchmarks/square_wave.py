@@ -1,6 +1,6 @@
 """Where the square wave loses: the tracking error of square-0.5hz split by phase of the edge.
 
-Issue 12 asks why ``square-0.5hz`` stays above 0.2 mm before tuning harder. The smooth square
+This asks why ``square-0.5hz`` stays above 0.2 mm before tuning harder. The smooth square
 (:func:`pneutune.control.sim.scenarios.smooth_square`) moves for 0.8 s (a quintic edge) and holds
 for 0.2 s, every half period. This runs the scenario on the true plant with ``/sim/truth`` and
 splits the metric window (the last three periods, as the paper's E_p) into phases of the

@@ -1,4 +1,4 @@
-"""The identifier convention (scikit-learn style, STYLE.md §4).
+"""The identifier convention (scikit-learn style).
 
 ``__init__`` only stores settings; ``fit(data)`` validates, learns and returns ``self``;
 learned values end in ``_``. :class:`Identifier` owns that bookkeeping.

@@ -29,7 +29,7 @@ from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.errors import LogError
 from pneutune.control.logs.reader import RunLog, read_run_log
 
-#: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (issue 4's unit check).
+#: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (catches gauge pressures or bar).
 P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5
 #: How far outside the stroke a position reading may be before it is implausible [m].
 X_MARGIN = 2.0e-3

@@ -1,5 +1,5 @@
 """Closed loop: the paper's config on the default plant (Table 1 scenarios) and a suite that
-every controller variant passes (STYLE.md §6)."""
+every controller variant passes."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def paper_results(paper):
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
 def test_paper_config_every_scenario(paper_results, name):
-    """Issue 3: the paper's config on the default plant is stable, keeps the pressures between
+    """The paper's config on the default plant is stable, keeps the pressures between
     ambient and supply, keeps θ̂ inside its bounds and tracks with E_p below 1 mm (the paper
     measured 0.38-0.53 mm on its rig, Table 1)."""
     r = paper_results[name]
@@ -53,7 +53,7 @@ def test_paper_config_every_scenario(paper_results, name):
 @pytest.mark.parametrize("variant", ["modified_darc", "original_darc", "direct_diff", "pid"])
 @pytest.mark.parametrize("scenario", ["sine-0.75hz", "square-0.5hz", "disturbance-0.5hz"])
 def test_every_variant_closed_loop_suite(paper, variant, scenario):
-    """The shared closed-loop suite (STYLE.md §6): every variant, with the paper's settings, is
+    """The shared closed-loop suite: every variant, with the paper's settings, is
     stable, bounded and tracks. The ceilings are loose enough for the untuned PID baseline
     (E_p ≈ 5-7 mm with its default gains) and tight enough that an open loop fails (a 17.5 mm
     amplitude reference)."""
@@ -82,7 +82,7 @@ def test_direct_diff_chatters_more_than_modified_darc(paper):
 
 
 def test_step_size_accuracy_closed_loop(paper):
-    """Issue 3: the default integration step gives E_p and E_rms within 0.005 mm of a converged
+    """The default integration step gives E_p and E_rms within 0.005 mm of a converged
     run (sine-0.5hz, modified DARC). Converged: 100, 50 and 25 us give the same 0.3129 / 0.0953
     mm (docs/integration.md). The reference is not half the step: with stiction the closed loop
     is sensitive to when a stick ends, and 200 us happens to land 0.015 mm off."""
@@ -114,7 +114,7 @@ def test_groups_cover_table1():
 
 def test_cli_json_is_one_object_and_reproducible(tmp_path):
     """`simulate --controller --scenario --json` prints exactly one JSON object with the metrics
-    of DESIGN.md, and a seeded run gives the same numbers in another process."""
+    per scenario, and a seeded run gives the same numbers in another process."""
     cmd = [sys.executable, "-m", "pneutune.control.cli.simulate", "--controller",
            str(PAPER_YAML), "--scenario", "sine-0.75hz", "--seed", "4", "--json"]
     outs = [subprocess.run(cmd, capture_output=True, text=True, check=True).stdout

@@ -70,7 +70,7 @@ def test_paper_config_has_the_sec51_values() -> None:
 
 
 def test_round_trip_record_yaml_record(tmp_path: Path) -> None:
-    """STYLE.md 8: record -> controller.yaml -> record unchanged (and dict unchanged)."""
+    """Record -> controller.yaml -> record unchanged (and dict unchanged)."""
     cfg = load_controller(PAPER)
     cfg = cfg.model_copy(update={"provenance": None})
     out = tmp_path / "c.yaml"
@@ -165,7 +165,7 @@ def test_bad_configs_raise_config_error_naming_the_key(tmp_path: Path, what: str
 
 
 def test_literal_6_0e5_in_yaml_text(tmp_path: Path) -> None:
-    """DESIGN.md YAML note: `p_s: 6.0e5` is a string in YAML 1.1; the loader says so."""
+    """`p_s: 6.0e5` is a string in YAML 1.1; the loader says so."""
     text = PAPER.read_text(encoding="utf-8").replace("p_s: 6.0e+5", "p_s: 6.0e5")
     p = tmp_path / "c.yaml"
     p.write_text(text, encoding="utf-8")
@@ -240,7 +240,7 @@ def test_a_valve_with_its_own_pwm_curve(tmp_path: Path) -> None:
 
 
 def test_model_is_frozen() -> None:
-    """Records are frozen (STYLE.md 8)."""
+    """Records are frozen."""
     cfg = load_controller(PAPER)
     with pytest.raises(Exception, match="frozen"):
         cfg.variant = "pid"  # type: ignore[misc]

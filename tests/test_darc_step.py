@@ -32,7 +32,7 @@ from pneutune.control.physics.pwm import sample_pwm_curve
 
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
 VARIANTS = ("modified_darc", "original_darc", "direct_diff", "pid")
-X_MID = 0.0235  # DESIGN.md: trajectories centred at mid-stroke
+X_MID = 0.0235  # trajectories are centred at mid-stroke
 
 
 def _cfg(variant: str, position_feedback: str = "measured", accel: str = "filtered"):

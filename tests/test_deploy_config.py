@@ -1,4 +1,4 @@
-"""deploy's loading (issue 6, section 1): a table of bad controller.yaml files, each giving
+"""deploy's loading: a table of bad controller.yaml files, each giving
 exit status 2 and one `error:` line that names the file and the key; nothing runs (no log)."""
 
 from __future__ import annotations

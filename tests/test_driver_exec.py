@@ -1,4 +1,4 @@
-"""Issue 13 §3: any driver program on the command line (``deploy --rig exec:"CMD ARGS"``) and
+"""Any driver program on the command line (``deploy --rig exec:"CMD ARGS"``) and
 the driver author's conformance check (``python -m pneutune.control.driver check "CMD"``).
 
 Run against three drivers nobody wrote for these tests alone: the shipped

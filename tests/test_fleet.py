@@ -1,5 +1,5 @@
 """Fleet subset (slow): identify -> tune on a plant the project was not tuned on, from a
-closed-loop log and from another protocol, scored on the true plant (issue 11).
+closed-loop log and from another protocol, scored on the true plant.
 
 Runs ``benchmarks/fleet.py`` as a user would (a subprocess, its JSON output). Plant 1 of the
 fleet (seed 0) has latched PWM, heavier friction than the paper's rig (F_C 107 N, F_S 188 N) and

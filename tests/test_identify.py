@@ -1,7 +1,7 @@
 """identify: recover the truth from simulated identification runs of plants that differ from the
 defaults (one recover-the-truth suite), bad logs, model.yaml round trip.
 
-The truth is the plant.yaml each log was simulated from. Tolerances are issue 4's: C and b within
+The truth is the plant.yaml each log was simulated from. Target tolerances: C and b within
 5 %, F_C and b_v within 10 %, M within 5 %, θ bounds containing the truth. The identification
 run logs every 0.5 ms (8 samples per 4 ms control period); the mass comes from the lag of the
 motion behind the pressure force, which 4 ms samples cannot resolve (docs/identifiability.md,
@@ -115,7 +115,7 @@ def test_pwm_curve_matches_delays(case):
 
 
 def test_friction_within_10_percent(case):
-    """Issue 4: F_C and b_v within 10 % of the plant's, from the two-stage fit (an
+    """F_C and b_v within 10 % of the plant's, from the two-stage fit (an
     identification run always slides faster than 20 mm/s in both directions)."""
     name, plant, r, _ = case
     assert r.friction.coulomb_from_fast_, name
@@ -297,11 +297,11 @@ def test_model_yaml_round_trips(case, tmp_path):
 
 
 def test_mass_within_6_percent(case):
-    """Issue 4: M close to the plant's total moving mass, from the lag of the motion behind the
+    """M close to the plant's total moving mass, from the lag of the motion behind the
     pressure force in the 0.5 ms identification log (identify/mass.py); the model does not call
     it unidentifiable. Measured (docs/identifiability.md): on the four plants with noise seeds
     11 and 12, -0.5 ... +5.2 % (the +5.2 %: light-friction-leaky, seed 11, since the plant
-    finds its stops exactly; every interval holds the truth). Issue 4 asked for 5 %; the
+    finds its stops exactly; every interval holds the truth). The target is 5 %; the
     scatter over noise seeds reaches it, hence 6 % here."""
     name, plant, r, _ = case
     assert r.model.mass == pytest.approx(plant.total_mass, rel=0.06), name

@@ -1,4 +1,4 @@
-"""identify on logs it was not built around (issue 11): closed-loop logs at the control rate and
+"""identify on logs it was not built around: closed-loop logs at the control rate and
 another protocol, on a plant that differs from the defaults; the pieces that make that work.
 
 The truth is the plant each log was simulated from (``PLANT``: heavier friction than the
@@ -96,8 +96,8 @@ def test_every_range_holds_the_truth_and_says_why(case):
 
 def test_open_fractions_match_the_pwm_curve():
     """OpenFractions switches the valves as the plant does: over whole PWM periods at a constant
-    duty, the open fraction is effective_open_fraction's closed form (DESIGN.md), in both
-    update modes."""
+    duty, the open fraction is effective_open_fraction's closed form (control/physics/pwm.py),
+    in both update modes."""
     period = 1.0 / 60.0
     tm = Timing(3.0e-3, 2.0e-3, 1.5e-3)
     for mode in ("immediate", "latched"):

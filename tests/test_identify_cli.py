@@ -218,7 +218,7 @@ def test_closed_loop_log_without_labels_or_truth(tmp_path):
     assert any(n.startswith("mass: not identifiable") for n in model.notes)
     assert any(n.startswith("D_an:") for n in model.notes)
     assert not any("never runs at full duty" in n for n in model.notes)
-    # consistent with the plant it came from (issue 6: log -> identify -> model)
+    # consistent with the plant it came from (log -> identify -> model)
     truth = PlantConfig()
     assert model.friction.b_v == pytest.approx(truth.friction.b_v, rel=0.15)
     for v, t in zip(model.valves.ordered(), truth.valves.ordered(), strict=True):

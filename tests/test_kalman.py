@@ -56,7 +56,7 @@ def test_models_are_eq34() -> None:
 
 @pytest.mark.parametrize("which", ["motion", "force"])
 def test_class_matches_pure_functions(which: str) -> None:
-    """Class and pure functions agree to 1e-12 (STYLE.md 3, FilterPy's procedure-form test)."""
+    """Class and pure functions agree to 1e-12 (as FilterPy's procedure-form test)."""
     rng = np.random.default_rng(20140416)
     kf, A, W, H, Q, R, x, P = _filters(which, rng)
     WQWt = process_cov(W, Q)

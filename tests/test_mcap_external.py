@@ -27,7 +27,7 @@ NODE_DIR = REPO / ".cache" / "node"
 #: Pinned so that the test is reproducible; fzstd is a pure-JS zstd decoder.
 NODE_PACKAGES = {"@mcap/core": "2.2.2", "fzstd": "0.1.1"}
 
-# The paper's rig (Qian et al. 2014, Sec. 5.1; DESIGN.md contract 2 defaults).
+# The paper's rig (Qian et al. 2014, Sec. 5.1; plant.yaml's defaults, contract 2).
 RIG: dict[str, float | str] = {
     "A_a": 7.854e-3, "A_b": 7.54e-3, "x_min": -0.0015, "x_max": 0.0485, "V0a": 5.036e-5,
     "V0b": 2.916e-5, "p0": 101325.0, "p_s": 6.0e5, "T0": 283.15, "n": 1.2, "R": 287.0,

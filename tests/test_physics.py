@@ -844,7 +844,7 @@ def test_flow_regularisation_is_small() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Step-size convergence (issue 2: halving the step moves a tracking metric by <= 0.005 mm)
+# Step-size convergence (halving the step moves a tracking metric by <= 0.005 mm)
 
 
 def _tracking_metrics(dt: float, mode: str) -> tuple[float, float]:
@@ -868,7 +868,7 @@ def _tracking_metrics(dt: float, mode: str) -> tuple[float, float]:
 
 @pytest.mark.parametrize("mode", ["immediate", "latched"])
 def test_tracking_metric_converges_in_the_step_size(mode: str) -> None:
-    """Issue 2: sim.dt = 0.4 ms (the default) and 0.2 ms give E_p and E_rms within 0.005 mm.
+    """sim.dt = 0.4 ms (the default) and 0.2 ms give E_p and E_rms within 0.005 mm.
     The loop must actually track (E_p of a few mm at most), or the comparison is empty."""
     assert PlantConfig().sim.dt == 4.0e-4
     ep1, erms1 = _tracking_metrics(4.0e-4, mode)

@@ -1,6 +1,6 @@
-"""plant.yaml (DESIGN.md, contract 2): bad files are ConfigErrors naming the file and the key; a
+"""plant.yaml (contract 2): bad files are ConfigErrors naming the file and the key; a
 partial file merges over the paper defaults; the CLI turns a bad plant into one ``error:`` line
-and exit status 2 (DESIGN.md, "Command line")."""
+and exit status 2."""
 
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def test_bad_plant_file_raises_config_error_naming_the_key(tmp_path: Path, text:
     with pytest.raises(ConfigError) as info:
         load_plant(path)
     err = info.value
-    assert isinstance(err, ValueError)  # STYLE.md 7: typed errors subclass a builtin
+    assert isinstance(err, ValueError)  # typed errors subclass a builtin
     assert err.file == str(path)
     assert err.key == key
     message = str(err)
@@ -77,7 +77,7 @@ def test_missing_plant_file_is_a_config_error(tmp_path: Path) -> None:
 
 
 def test_with_updates_validates_like_the_file() -> None:
-    """The override path must not skip validation (STYLE.md: no validation that a path skips)."""
+    """The override path must not skip validation."""
     with pytest.raises(ConfigError) as info:
         PlantConfig().with_updates({"valves": {"a_in": {"C": -1.0}}})
     assert info.value.key == "valves.a_in.C"
@@ -121,7 +121,7 @@ def test_empty_file_is_the_defaults(tmp_path: Path) -> None:
 
 
 def test_cli_bad_plant_is_one_error_line_and_exit_2(tmp_path: Path) -> None:
-    """DESIGN.md: bad input -> exit status 2, one line ``error: ...`` on stderr naming the file
+    """Bad input -> exit status 2, one line ``error: ...`` on stderr naming the file
     and the key, no traceback, nothing on stdout, no log written."""
     plant = tmp_path / "bad-plant.yaml"
     plant.write_text("rig:\n  p_s: 6.0e5\n", encoding="utf-8")

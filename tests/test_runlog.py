@@ -2,8 +2,8 @@
 
 Bad files are built with the ``mcap`` package's own writer (not with :class:`RunLogWriter`), so
 the reader is tested against files it did not write. Expected values are the values written;
-the rig values are the paper's rig (Qian et al. 2014, Sec. 5.1, = DESIGN.md contract 2
-defaults).
+the rig values are the paper's rig (Qian et al. 2014, Sec. 5.1, = plant.yaml's defaults,
+contract 2).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from pneutune.control.logs.reader import MCAP_MAGIC, RunLog, _bulk_numeric, read
 from pneutune.control.logs.topics import TOPIC_SCHEMAS, TOPIC_SPECS, TOPICS
 from pneutune.control.logs.writer import RunLogWriter
 
-# The paper's rig (Sec. 5.1; DESIGN.md contract 2 defaults).
+# The paper's rig (Sec. 5.1; plant.yaml's defaults, contract 2).
 RIG: dict[str, float | str] = {
     "A_a": 7.854e-3, "A_b": 7.54e-3, "x_min": -0.0015, "x_max": 0.0485, "V0a": 5.036e-5,
     "V0b": 2.916e-5, "p0": 101325.0, "p_s": 6.0e5, "T0": 283.15, "n": 1.2, "R": 287.0,

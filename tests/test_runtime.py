@@ -1,4 +1,4 @@
-"""The deploy runtime (issue 6, sections 2 and 4): it reproduces the simulator, its logs are
+"""The deploy runtime: it reproduces the simulator, its logs are
 contract-1 logs that identify can read, the out-of-process example driver gives the same
 numbers, the realtime pacing reports its figures; and reports/summary.md."""
 
@@ -37,7 +37,7 @@ def paper():
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
 def test_deploy_reproduces_simulate(paper, name):
-    """STYLE.md §2/§8: the runtime calls the same compiled step as the simulator, the sim rig
+    """The runtime calls the same compiled step as the simulator, the sim rig
     draws the same noise (four standard normals per sample from default_rng(seed)) and starts
     from the same state, so deploy on the sim rig equals `simulate --controller` sample for
     sample; the metrics agree to 1e-9 mm (here exactly)."""
@@ -56,7 +56,7 @@ def test_deploy_reproduces_simulate(paper, name):
 
 
 def test_deploy_log_round_trip(tmp_path, capsys):
-    """Issue 6 §4: `deploy` writes a contract-1 log that read_run_log accepts, with what
+    """`deploy` writes a contract-1 log that read_run_log accepts, with what
     identify needs (/rig/sensors, /rig/valves, every rig metadata key) and the closed-loop
     topics (/control/reference, /control/state, /experiment/segment, /sim/truth); the numbers
     are those printed with --json."""
@@ -86,7 +86,7 @@ def test_deploy_log_round_trip(tmp_path, capsys):
 
 
 def test_pipe_driver_matches_in_process(paper):
-    """Issue 6 §2: the example driver runs the simulated rig in another process (the pipe
+    """The example driver runs the simulated rig in another process (the pipe
     protocol, IEEE doubles); 2 s of sine-0.5hz give bit-identical samples to the same rig in
     process."""
     sc = SCENARIOS["sine-0.5hz"]

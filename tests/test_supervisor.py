@@ -1,4 +1,4 @@
-"""The safety supervisor (issue 6, section 3): every fault injected through the simulated rig
+"""The safety supervisor: every fault injected through the simulated rig
 reaches the fail-safe state within one sample, with its event logged; the re-identification
 warnings; the pure rules on synthetic samples."""
 
@@ -66,7 +66,7 @@ CASES = [
                          ids=[f"{c[0].kind}-{c[0].channel}-{c[1]}" for c in CASES])
 def test_fault_reaches_fail_safe_within_one_sample(paper, clean, tmp_path, fault, code,
                                                    t_expected):
-    """Issue 6 §3: the fault is raised at the first bad sample (or, for staleness, the first
+    """The fault is raised at the first bad sample (or, for staleness, the first
     sample past limits.sensor_timeout_s), the fail-safe duties are written in that same sample,
     the event is on /rig/events of the log, and everything before it equals the clean run."""
     rig, res = _faulty_run(paper, [fault])

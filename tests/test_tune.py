@@ -1,4 +1,4 @@
-"""tune (issue 5): search space, plant draws, objective, and the command end to end.
+"""tune: search space, plant draws, objective, and the command end to end.
 
 Expected values come from: the paper's Sec. 5.1 (gains, ε, Γ, Q/R), Table 1 (the normalisation
 of the cost), ``model_from_plant`` (the truth model: every range ±20 % of the default plant) and

@@ -1,4 +1,4 @@
-"""``pneutune.tune.tune``: the command as a library call (issue 13, section 2).
+"""``pneutune.tune.tune``: the command as a library call.
 
 The model is ``model_from_plant(PlantConfig())`` (the default plant's truth, every range ±20 %),
 tuned in memory with quick settings (one 4 s scenario, two plants): a notebook's use.
@@ -66,7 +66,7 @@ def test_the_pid_baseline_is_tuned_with_the_same_objective(tmp_path: Path) -> No
 
 
 def test_the_report_scores_both_controllers_on_held_out_draws(tmp_path: Path) -> None:
-    """Issue 12, generalisation: report.md and --json score the tuned and the paper's gains on
+    """Generalisation: report.md and --json score the tuned and the paper's gains on
     draws the study never saw (seed + HELDOUT_SEED_OFFSET). With 4 draws the Latin-hypercube
     plant (draw 3) is a new plant; the overfit figure is the ratio of ratios of the four
     objective values (recomputed here from the evaluations, to 1e-12)."""

@@ -1,4 +1,4 @@
-"""The feasibility check before a study (issue 11): a tune never ends with nothing.
+"""The feasibility check before a study: a tune never ends with nothing.
 
 Models come from ``model_from_plant`` (the truth model of a plant, every range ±20 %), edited so
 that one range end holds a plant no controller tracks (a break-away force of 3 kN against the

@@ -1,4 +1,4 @@
-"""tune on a PostgreSQL study (issue 5 §3): a throw-away server on loopback.
+"""tune on a PostgreSQL study: a throw-away server on loopback.
 
 The fixture starts a cluster of the Debian ``postgresql-15`` server in a temporary folder, as an
 unprivileged user when the tests run as root (initdb refuses root), listening on 127.0.0.1 at a

@@ -1,4 +1,4 @@
-"""``tune --sampler`` (issue 12, "The sampler"): TPE stays the default; ``cmaes`` is TPE, then
+"""``tune --sampler`` (docs/tuning.md, "Sampler"): TPE stays the default; ``cmaes`` is TPE, then
 CMA-ES warm-started from the TPE trials; without the ``cmaes`` package the command exits 2 with
 one ``error:`` line saying how to install it."""
 

@@ -1,4 +1,4 @@
-"""tune's storage (issue 5 §3): resume after kill -9, several workers on one journal/SQLite study.
+"""tune's storage: resume after kill -9, several workers on one journal/SQLite study.
 
 Each test runs the real ``tune`` command in a subprocess with the quick objective settings
 (``tune_helpers.QUICK``: one 4 s scenario on two plants).

@@ -1,4 +1,4 @@
-"""Before a study: every plant draw must be trackable, or the study ends with nothing (issue 11).
+"""Before a study: every plant draw must be trackable, or the study ends with nothing.
 
 A model's ranges can hold plants that no controller tracks -- a break-away force the log never
 showed, a mass at the far end of a prior. A draw like that fails every trial, the pruner has no

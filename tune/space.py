@@ -5,7 +5,7 @@ controller.yaml key path; docs/tuning.md):
 
 * ``gains.k1``, ``gains.k2``, ``gains.k3`` -- the backstepping gains of Eqs. (13), (17), (26).
 * ``gains.h2``, ``gains.h3`` with ``eps2``/``eps3`` fixed at the paper's 0.05 and 250 (Sec. 5.1).
-  With constant h (DESIGN.md) the robust terms of Eqs. (20) and (29) are
+  With constant h (docs/controller.md) the robust terms of Eqs. (20) and (29) are
   ``-h2² e2 / (4 ε2)`` and ``-h3² e3 / (4 ε3)``: h and ε enter the law only through h²/ε
   (``control/law/darc.py``), so searching both would add a dimension with no effect. We search h and
   keep ε, the boundary-layer size of Eqs. (19)/(28), at the paper's value so that the guaranteed

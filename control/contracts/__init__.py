@@ -1,4 +1,4 @@
-"""The four file contracts of DESIGN.md as strict pydantic models: plant.yaml, model.yaml,
+"""The four file contracts as strict pydantic models: plant.yaml, model.yaml,
 controller.yaml, their JSON Schemas, YAML reading and writing, atomic file output.
 
 Layer 2: imports physics.
