@@ -116,7 +116,7 @@ BAD = [
     ("missing block", "kalman", _DELETE, "kalman", "missing"),
     ("missing key", "gains.k1", _DELETE, "gains.k1", "missing"),
     ("wrong type", "gains.k2", "fast", "gains.k2", "number"),
-    ("string 6.0e5 (YAML 1.1)", "rig.p_s", "6.0e5", "rig.p_s", "6.0e+5"),
+    ("number in quotes", "rig.p_s", "6.0e+5", "rig.p_s", "without them"),
     ("bool for a float", "gains.k3", True, "gains.k3", "number"),
     ("out of range, k1 <= 0", "gains.k1", -1.0, "gains.k1", "greater than 0"),
     ("out of range, Kalman R", "kalman.motion.R", 0.0, "kalman.motion.R", "greater than 0"),
@@ -165,11 +165,27 @@ def test_bad_configs_raise_config_error_naming_the_key(tmp_path: Path, what: str
 
 
 def test_literal_6_0e5_in_yaml_text(tmp_path: Path) -> None:
-    """`p_s: 6.0e5` is a string in YAML 1.1; the loader says so."""
+    """`p_s: 6.0e5` is the number 6e5: the files are read as YAML 1.2 (YAML 1.1 read a
+    mantissa with an unsigned exponent as a string)."""
     text = PAPER.read_text(encoding="utf-8").replace("p_s: 6.0e+5", "p_s: 6.0e5")
+    assert "p_s: 6.0e5" in text
     p = tmp_path / "c.yaml"
     p.write_text(text, encoding="utf-8")
-    with pytest.raises(ConfigError, match=r"rig\.p_s: expected a number, got the string"):
+    assert load_controller(p).rig.p_s == 6.0e5
+
+
+def test_yaml_1_2_words_are_strings_and_aliases_are_refused(tmp_path: Path) -> None:
+    """YAML 1.2: `yes` is a string, not true, so a boolean key given `yes` names the key; an
+    anchor and alias (whose nesting expands exponentially) is refused with its line."""
+    text = PAPER.read_text(encoding="utf-8")
+    p = tmp_path / "c.yaml"
+    p.write_text(text.replace("variant: modified_darc", "variant: yes"), encoding="utf-8")
+    with pytest.raises(ConfigError) as exc:
+        load_controller(p)
+    assert exc.value.key == "variant"
+    lines = ["a: &x [1, 2]", "b: [*x, *x]", "c: [*x, *x]"]
+    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"anchored \(&\) at line 1 .*not allowed"):
         load_controller(p)
 
 

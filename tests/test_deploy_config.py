@@ -64,7 +64,7 @@ BAD: list[tuple[str, Callable[[dict[str, Any]], None], tuple[str, ...]]] = [
     ("unknown-limits-key", _set("limits.v_max", 0.1), ("limits.v_max", "unknown key")),
     ("wrong-type-string", _set("gains.k1", "fast"), ("gains.k1", "number")),
     ("wrong-type-bool", _set("gains.k2", True), ("gains.k2",)),
-    ("exponent-as-string", _set("rig.p_s", "6.0e5"), ("rig.p_s", "6.0e+5")),
+    ("number-in-quotes", _set("rig.p_s", "6.0e+5"), ("rig.p_s", "without them")),
     ("wrong-type-list", _set("kalman.motion.R", [1.0e-10]), ("kalman.motion.R",)),
     ("negative-gain", _set("gains.k1", -65.0), ("gains.k1", "greater than")),
     ("p_max-zero", _set("limits.p_max", 0.0), ("limits.p_max", "greater than")),
@@ -126,7 +126,7 @@ def test_at_least_15_bad_configs():
 
 
 @pytest.mark.parametrize("case", ["unknown-nested-key", "theta-min-above-max",
-                                  "Ts-not-the-rig's", "exponent-as-string"])
+                                  "Ts-not-the-rig's", "number-in-quotes"])
 def test_bad_config_via_the_command(tmp_path, case):
     """The same through the console command in a subprocess (no traceback, exit 2)."""
     _, edit, words = next(b for b in BAD if b[0] == case)

@@ -24,7 +24,7 @@ BAD_FILES = [
     ("misspelt-nested-key", "valves:\n  a_in:\n    delay_onn: 0.001\n",
      "valves.a_in.delay_onn", "unknown key"),
     ("misspelt-block", "frictoin:\n  F_S: 80.0\n", "frictoin", "unknown key"),
-    ("exponent-without-sign", "rig:\n  p_s: 6.0e5\n", "rig.p_s", "6.0e+5"),
+    ("number-in-quotes", "rig:\n  p_s: '6.0e5'\n", "rig.p_s", "without them"),
     ("string-number", "mass: '1.05'\n", "mass", "expected a number"),
     ("negative-area", "rig:\n  A_a: -7.854e-3\n", "rig.A_a", "greater than 0"),
     ("x_max-equal-x_min", "rig:\n  x_min: 0.05\n  x_max: 0.05\n", "rig.x_max", "x_max > x_min"),
@@ -124,7 +124,7 @@ def test_cli_bad_plant_is_one_error_line_and_exit_2(tmp_path: Path) -> None:
     """Bad input -> exit status 2, one line ``error: ...`` on stderr naming the file
     and the key, no traceback, nothing on stdout, no log written."""
     plant = tmp_path / "bad-plant.yaml"
-    plant.write_text("rig:\n  p_s: 6.0e5\n", encoding="utf-8")
+    plant.write_text("rig:\n  p_s: -6.0e5\n", encoding="utf-8")
     out = tmp_path / "run.mcap"
     proc = subprocess.run(
         [str(SIMULATE), "--experiment", "identification", "--seed", "1", "--plant", str(plant),
@@ -139,3 +139,12 @@ def test_cli_bad_plant_is_one_error_line_and_exit_2(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr
     assert proc.stdout == ""
     assert not out.exists()
+
+
+def test_an_exponent_without_a_sign_is_a_number(tmp_path: Path) -> None:
+    """The files are read as YAML 1.2: ``p_s: 6.0e5`` is 600 kPa, as ``6.0e+5`` is."""
+    path = tmp_path / "plant.yaml"
+    path.write_text("rig:\n  p_s: 6.0e5\nvalves:\n  a_in: {C: 9e-9}\n", encoding="utf-8")
+    plant = load_plant(path)
+    assert plant.rig.p_s == 6.0e5
+    assert plant.valves.a_in.C == 9.0e-9

@@ -1,11 +1,15 @@
 """YAML input and output for the configuration files (plant.yaml, model.yaml, controller.yaml).
 
-* ``yaml.safe_load`` semantics only (a SafeLoader subclass), never arbitrary objects.
-* A key given twice in one mapping is an error (PyYAML would silently keep the last one).
+* Read as YAML 1.2 (ruamel.yaml's safe loader, pure Python): ``6.0e5`` is a number, ``yes`` and
+  ``no`` are strings, and only plain data is built, never arbitrary objects. Files written for
+  YAML 1.1 (exponents with a sign, ``true``/``false``) read the same.
+* A key given twice in one mapping is an error (a silent overwrite would hide a typo), and so are
+  anchors and aliases (``&a``/``*a``): a contract file has no use for them, and nested aliases
+  expand exponentially (the "billion laughs").
 * pydantic validation errors become one :class:`~pneutune.control.errors.ConfigError` naming the
-  file, the dotted key path and the rule. A number written as ``6.0e5`` is read by YAML 1.1 as a
-  *string*; the loaders are strict and say so instead of converting it silently.
-* Output is written atomically, with floats in a form that YAML 1.1 reads back as floats.
+  file, the dotted key path and the rule.
+* Output is written atomically by PyYAML, with floats in a form that YAML 1.1 and 1.2 both read
+  back as floats (an exponent with a sign), so that older readers of the files still work.
 """
 
 from __future__ import annotations
@@ -18,6 +22,9 @@ from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
+from ruamel.yaml import YAML
+from ruamel.yaml.error import YAMLError
+from ruamel.yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from pneutune.control.contracts.atomic import atomic_write_text
 from pneutune.control.errors import ConfigError
@@ -25,27 +32,35 @@ from pneutune.control.errors import ConfigError
 M = TypeVar("M", bound=BaseModel)
 
 
-class _UniqueKeySafeLoader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate mapping keys."""
+def _reader() -> YAML:
+    """A YAML 1.2 reader building plain data only."""
+    return YAML(typ="safe", pure=True)
 
 
-def _construct_mapping(loader: _UniqueKeySafeLoader, node: yaml.MappingNode, deep: bool = False):
-    loader.flatten_mapping(node)
-    seen: dict[Any, int] = {}
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        if key in seen:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})",
-                key_node.start_mark,
-            )
-        seen[key] = key_node.start_mark.line
-    return loader.construct_mapping(node, deep=deep)
-
-
-_UniqueKeySafeLoader.add_constructor(
-    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping
-)
+def _check_nodes(root: Node | None) -> str:
+    """The first duplicate key or alias in a composed document, as a sentence ("" if none)."""
+    seen: set[int] = set()
+    stack = [root] if root is not None else []
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:  # composing resolves an alias to the anchored node itself
+            return (f"the node anchored (&) at line {node.start_mark.line + 1} is used again "
+                    f"through an alias (*); anchors and aliases are not allowed in a contract "
+                    f"file")
+        seen.add(id(node))
+        if isinstance(node, MappingNode):
+            first: dict[tuple[str, str], int] = {}
+            for key, value in node.value:
+                if isinstance(key, ScalarNode):
+                    k = (key.tag if isinstance(key.tag, str) else str(key.tag), key.value)
+                    if k in first:
+                        return (f"duplicate key {key.value!r} at line {key.start_mark.line + 1} "
+                                f"(first at line {first[k] + 1})")
+                    first[k] = key.start_mark.line
+                stack.extend((value, key))
+        elif isinstance(node, SequenceNode):
+            stack.extend(reversed(node.value))
+    return ""
 
 
 def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -73,9 +88,13 @@ def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ConfigError(str(p), "", "no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(str(p), "", f"cannot read the file ({exc})") from None
+    reader = _reader()
     try:
-        data = yaml.load(text, Loader=_UniqueKeySafeLoader)
-    except yaml.YAMLError as exc:
+        problem = _check_nodes(reader.compose(text))
+        if problem:
+            raise ConfigError(str(p), "", problem)
+        data = reader.load(text)
+    except YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
@@ -123,8 +142,7 @@ def _describe(err: Mapping[str, Any]) -> str:
         hint = ""
         try:
             float(value)
-            hint = (" (YAML 1.1 reads an exponent without a sign as a string: write e.g. "
-                    "6.0e+5, not 6.0e5)")
+            hint = " (a number in quotes is a string: write it without them, e.g. 6.0e+5)"
         except ValueError:
             pass
         kind = {"float_type": "a number", "int_type": "an integer", "bool_type": "true/false"}
@@ -200,7 +218,8 @@ def load_config(path: str | os.PathLike[str], model: type[M], schema: str,
 
 
 class _Dumper(yaml.SafeDumper):
-    """SafeDumper writing floats that YAML 1.1 reads back as floats (exponent with a sign)."""
+    """SafeDumper writing floats that YAML 1.1 and 1.2 read back as floats (exponent with a
+    sign)."""
 
 
 def _represent_float(dumper: yaml.SafeDumper, value: float) -> yaml.ScalarNode:
