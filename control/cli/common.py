@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 import numpy as np
@@ -84,6 +86,13 @@ def plant_meta(plant: str | None) -> dict[str, str]:
     if plant is None:
         return {"plant": "<defaults>"}
     return {"plant": plant, "plant_sha256": sha256_file(plant)}
+
+
+def scenario_log_path(path: str | os.PathLike[str], scenario: str, several: bool) -> Path:
+    """Where one scenario's log goes: ``path`` itself for a single scenario, else
+    ``<stem>-<scenario><suffix>`` beside it (suffix ``.mcap`` if ``path`` has none)."""
+    p = Path(path)
+    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p
 
 
 def format_table(rows: list[tuple[str, dict[str, Any], tuple[float, float] | None]],

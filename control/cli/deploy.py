@@ -17,6 +17,7 @@ from pneutune.control.cli.common import (
     plant_meta,
     print_json,
     run_cli,
+    scenario_log_path,
 )
 from pneutune.control.constants import HOME_MODES
 from pneutune.control.contracts.atomic import sha256_file
@@ -193,8 +194,7 @@ def check_sampled_at_control_rate(rig: Rig, rig_source: str) -> None:
 def _log_path(log: str | None, scenario: str, several: bool) -> Path:
     if log is None:
         return DEFAULT_LOG_DIR / f"{scenario}.mcap"
-    p = Path(log)
-    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p
+    return scenario_log_path(log, scenario, several)
 
 
 def _timing_line(name: str, timing: dict[str, Any]) -> str:

@@ -4,7 +4,6 @@ closed loop."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
@@ -16,6 +15,7 @@ from pneutune.control.cli.common import (
     plant_meta,
     print_json,
     run_cli,
+    scenario_log_path,
 )
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.plant import PlantConfig, load_plant
@@ -98,11 +98,6 @@ def _experiment(args: Any, seed: int) -> int:
                                  compression_level=args.compression_level, json=args.json))
 
 
-def _out_path(out: str, scenario: str, several: bool) -> Path:
-    p = Path(out)
-    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p
-
-
 def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
     from pneutune.control.contracts.controller import load_controller
     from pneutune.control.law.layout import pack
@@ -124,7 +119,7 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
         results[sc.name] = m
         rows.append((sc.name, m, sc.paper))
         if args.out:
-            path = _out_path(args.out, sc.name, len(scenarios) > 1)
+            path = scenario_log_path(args.out, sc.name, len(scenarios) > 1)
             run_meta = {"seed": str(seed), "scenario": sc.name, "controller": args.controller,
                         "controller_sha256": sha256_file(args.controller),
                         "variant": controller.variant, **plant_meta(args.plant)}
