@@ -30,7 +30,7 @@ from pneutune.control.sim.scenarios import SCENARIOS
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import fleet
 
-SCORED = ("sine-0.5hz", "sine-0.75hz", "sine-0.5hz-heavy", "square-0.5hz", "disturbance-0.5hz")
+SCORED = fleet.SCORED
 
 
 def variant(paper: ControllerConfig, kind: str) -> ControllerConfig:

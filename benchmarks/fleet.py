@@ -80,7 +80,7 @@ KINDS = {
     "t": "no log: the true plant as the model (model_from_plant, ranges ±20 %)",
 }
 PAPER = Path(__file__).resolve().parents[1] / "data" / "controller-paper.yaml"
-SCORED = (*GROUPS["table1"], "disturbance-0.5hz")
+SCORED = GROUPS["all"]
 #: The quality targets on the true plant [mm]: Table-1 scenarios, disturbance-0.5hz.
 QUALITY_MM, QUALITY_DISTURBANCE_MM = 0.20, 0.30
 #: Noise seeds the controllers are scored with (the mean over them is the score).

@@ -32,11 +32,10 @@ from pneutune.control.contracts.model import load_model
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.plant.params import P_DTMIN, pack_plant
 from pneutune.control.sim.closed_loop import simulate_scenario
-from pneutune.control.sim.scenarios import SCENARIOS
+from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
 ROOT = Path(__file__).resolve().parents[1]
-SCENARIO_NAMES = ("sine-0.5hz", "sine-0.75hz", "sine-0.5hz-heavy", "square-0.5hz",
-                  "disturbance-0.5hz")
+SCENARIO_NAMES = GROUPS["all"]
 #: Steep variants of the paper's rig (F_S [N], F_C [N], v_s [m/s], alpha, b_v [N s/m], M [kg]).
 STEEP = {
     "F_S 3x, v_s 2.5 mm/s": (150.0, 50.0, 2.5e-3, 2.0, 3500.0, 1.05),

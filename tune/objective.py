@@ -81,8 +81,8 @@ from pneutune.control.sim.scenarios import GROUPS, SCENARIOS, Scenario, resolve_
 from .plants import PlantDraw, draw_plants
 from .space import VARIANTS, SearchSpace, controller_from_params, search_space
 
-#: Default scenarios: Table 1, then the disturbance run.
-DEFAULT_SCENARIOS: tuple[str, ...] = (*GROUPS["table1"], "disturbance-0.5hz")
+#: Default scenarios: every scenario, that is Table 1, then the disturbance run.
+DEFAULT_SCENARIOS: tuple[str, ...] = GROUPS["all"]
 #: Value reported for a trial stopped by an unstable or aborted run.
 FAIL_VALUE: float = 1.0e3
 #: Draws of one scenario run per compiled call between two pruning checks, with per-instance
