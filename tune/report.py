@@ -21,10 +21,10 @@ import optuna
 from matplotlib.figure import Figure
 from optuna.trial import FrozenTrial, TrialState
 
-from pneutune.control.cli.common import format_table
 from pneutune.control.contracts.atomic import atomic_write_text, save_figure
 from pneutune.control.contracts.controller import ControllerConfig
 from pneutune.control.sim.closed_loop import FULL_OPEN_SUSTAIN
+from pneutune.control.sim.table import format_table
 
 from .objective import FAIL_VALUE, Evaluation, TuneObjective
 from .space import params_from_controller

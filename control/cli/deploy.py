@@ -11,7 +11,6 @@ from typing import Any
 from tqdm import tqdm
 
 from pneutune.control.cli.common import (
-    format_table,
     info,
     make_parser,
     plant_meta,
@@ -27,6 +26,7 @@ from pneutune.control.errors import ConfigError, ExperimentError
 from pneutune.control.law.layout import pack
 from pneutune.control.rig.protocol import Rig
 from pneutune.control.rig.supervisor import FAIL_SAFE_MODES
+from pneutune.control.sim.table import format_table
 
 #: Exit status of a run stopped by a supervisor fault.
 EXIT_FAULT = 3

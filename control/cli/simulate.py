@@ -9,7 +9,6 @@ from typing import Any
 from tqdm import tqdm
 
 from pneutune.control.cli.common import (
-    format_table,
     info,
     make_parser,
     plant_meta,
@@ -21,6 +20,7 @@ from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.writer import ZSTD_LEVELS
+from pneutune.control.sim.table import format_table
 
 DESCRIPTION = """\
 Run the simulated rig (the paper's Sec. 2 model with valve switching, stiction, end stops and
