@@ -36,9 +36,8 @@ from numba import njit
 from pneutune.control.physics.flow import signed_flow
 
 from .dataset import Dataset
+from .mass import MIN_SAMPLES_PER_PWM, samples_per_pwm
 
-#: Least logged samples per PWM period for onsets (as the mass's lag estimate needs).
-MIN_SAMPLES_PER_PWM = 8
 #: Time after an edge the response is compared over [s].
 HORIZON = 0.040
 #: Largest piston travel over an edge's window for the volume to count as fixed [m].
@@ -159,8 +158,8 @@ def step_onsets(logs: Sequence[Dataset], C: np.ndarray, b: np.ndarray, max_delay
     ----------
     logs : sequence of Dataset
         Logs at their own sampling period; those with fewer than
-        :data:`MIN_SAMPLES_PER_PWM` samples per PWM period, or a latched PWM update, are
-        skipped.
+        :data:`~.mass.MIN_SAMPLES_PER_PWM` samples per PWM period (as the mass's lag estimate
+        needs), or a latched PWM update, are skipped.
     C, b : ndarray, (4,)
         Sonic conductance [m^3/(s Pa)] and critical pressure ratio of each valve (a_in, a_out,
         b_in, b_out), as fitted at the control rate.
@@ -177,7 +176,7 @@ def step_onsets(logs: Sequence[Dataset], C: np.ndarray, b: np.ndarray, max_delay
     for d in logs:
         rig = d.rig
         h = d.Ts
-        if rig.pwm_update != "immediate" or 1.0 / (rig.pwm_hz * h) < MIN_SAMPLES_PER_PWM:
+        if rig.pwm_update != "immediate" or samples_per_pwm(d) < MIN_SAMPLES_PER_PWM:
             continue
         H = round(HORIZON / h)
         grid = np.arange(0.0, max_delay + 0.5 * GRID_STEP, GRID_STEP)
@@ -187,8 +186,9 @@ def step_onsets(logs: Sequence[Dataset], C: np.ndarray, b: np.ndarray, max_delay
         Va, Vb = d.volumes()
         nRT = rig.n * rig.R * rig.T0
         for i in range(4):
-            ch, inlet = divmod(i, 2)[0], i % 2 == 0
-            other = 2 * ch + (1 if inlet else 0)
+            ch, port = divmod(i, 2)
+            inlet = port == 0
+            other = 2 * ch + 1 - port
             u, uo = d.u[:, i], d.u[:, other]
             p = d.p_a if ch == 0 else d.p_b
             V = Va if ch == 0 else Vb

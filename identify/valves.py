@@ -859,7 +859,7 @@ class ValveIdentifier(Identifier):
                         search: Callable[..., None], refit: Callable[[float], np.ndarray],
                         timings: list[Timing], phase: float, b: np.ndarray, theta: np.ndarray,
                         Ts: float, period: float,
-                        on_bounds: Callable[[int], tuple[float, float]] | None = None,
+                        on_bounds: Callable[[int], tuple[float, float]],
                         ) -> tuple[np.ndarray, np.ndarray]:
         """Search a loop delay: every duty acting ``d`` after its sample (an IO delay).
 
@@ -876,7 +876,8 @@ class ValveIdentifier(Identifier):
         delay, a candidate ``d`` takes ``d`` off that valve's opening and closing delays (the
         opening within the onset's range less ``d``, ``on_bounds``): edges timed by a write
         (the full-opening steps) keep their times, pulses timed by the carrier (steady duties)
-        move ``d`` earlier, and the scan separates the two.
+        move ``d`` earlier. On an identification run the costs stay flat all the same, since
+        the carrier's phase is searched too (docs/identification.md, "The loop delay").
         """
         cost = cost_for(b)
         grid = np.linspace(0.0, Ts, LOOP_DELAY_POINTS)
@@ -884,8 +885,6 @@ class ValveIdentifier(Identifier):
         def shifted(d: float) -> list[Timing]:
             """The timings with ``d`` taken off the opening delays an onset holds."""
             out = list(timings)
-            if on_bounds is None:
-                return out
             for i, tm in enumerate(timings):
                 if self.onsets_[i] is None:
                     continue
