@@ -35,8 +35,9 @@ from pneutune.control.errors import (
     TimeOrderError,
     TruncatedLogError,
 )
+from pneutune.control.logs.decode import _bulk_numeric
 from pneutune.control.logs.mcap_json import JsonDecoderFactory, decode_json, encode_json
-from pneutune.control.logs.reader import MCAP_MAGIC, RunLog, _bulk_numeric, read_run_log
+from pneutune.control.logs.reader import MCAP_MAGIC, RunLog, read_run_log
 from pneutune.control.logs.topics import TOPIC_SCHEMAS, TOPIC_SPECS, TOPICS
 from pneutune.control.logs.writer import RunLogWriter
 

@@ -16,12 +16,13 @@ Layout
 
 Compression level
     The ``mcap`` package compresses chunks with ``zstandard.compress``, zstd's level 3, and
-    has no setting. ``compression_level`` picks another level for one writer: the package's
-    reference to the ``zstandard`` module is replaced, once, by :class:`_ZstdLevels`, which
-    compresses exactly as before unless the calling thread's writer asked for a level (a
-    thread-local setting around each of the writer's calls into the package). The bytes stay
-    standard zstd frames that every reader decompresses; level 19 makes data/run.mcap 20 %
-    smaller and takes about five times as long to write.
+    has no setting. ``compression_level`` picks another level for one writer: each of the
+    writer's calls into the package runs inside
+    :func:`~pneutune.control.logs.compression.zstd_level`, which hands the package a
+    ``zstandard`` that compresses at that level for the calling thread only, and gives it the
+    module back when the call returns. The bytes stay standard zstd frames that every reader
+    decompresses; level 19 makes data/run.mcap 20 % smaller and takes about five times as
+    long to write.
 
 Sequence numbers
     Every message's ``sequence`` is 0 (the MCAP spec's optional publisher counter; 0 is the
@@ -37,19 +38,22 @@ import contextlib
 import math
 import numbers
 import os
-import threading
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
-import mcap.writer
 import numpy as np
-import zstandard
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
-from pneutune.control import __version__
-from pneutune.control.constants import LOG_SCHEMA, PWM_UPDATE_MODES, RIG_HINT_KEYS, RIG_KEYS
+from pneutune.control.constants import (
+    LOG_SCHEMA,
+    PWM_UPDATE_MODES,
+    RIG_HINT_KEYS,
+    RIG_KEYS,
+    VERSION,
+)
 from pneutune.control.contracts.atomic import atomic_open
+from pneutune.control.logs.compression import ZSTD_LEVELS, zstd_level
 from pneutune.control.logs.mcap_json import encode_json
 from pneutune.control.logs.topics import (
     EVENT_LEVELS,
@@ -63,51 +67,11 @@ from pneutune.control.logs.topics import (
     topic_spec,
 )
 
-__all__ = ["RunLogWriter"]
+__all__ = ["ZSTD_LEVELS", "RunLogWriter"]
 
 _MAX_S = 9.2e9  # largest accepted time [s]: below 2**63 ns
 #: The summary's indexes of an ``indexed=False`` log: no chunk or message indexes.
 _UNINDEXED = IndexType.ATTACHMENT | IndexType.METADATA
-#: zstd levels accepted by ``compression_level`` (zstd's own range without the negative ones).
-ZSTD_LEVELS = range(1, 23)
-
-
-class _ZstdLevels:
-    """Stand-in for the ``zstandard`` module inside ``mcap.writer`` (module docstring):
-    ``compress`` at the level the calling thread set, else ``zstandard.compress``."""
-
-    def __init__(self, module: Any) -> None:
-        self._module = module
-        self.local = threading.local()
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._module, name)
-
-    def compress(self, data: bytes) -> bytes:
-        """Compress one chunk."""
-        level = getattr(self.local, "level", None)
-        if level is None:
-            return self._module.compress(data)
-        return self._module.ZstdCompressor(level=level).compress(data)
-
-
-if not isinstance(mcap.writer.zstandard, _ZstdLevels):
-    mcap.writer.zstandard = _ZstdLevels(zstandard)  # type: ignore[assignment]
-_LEVELS: _ZstdLevels = mcap.writer.zstandard  # type: ignore[assignment]
-
-
-@contextlib.contextmanager
-def _zstd_level(level: int | None) -> Iterator[None]:
-    """Chunks closed inside the block are compressed at ``level`` (None: the package's)."""
-    if level is None:
-        yield
-        return
-    previous = getattr(_LEVELS.local, "level", None)
-    _LEVELS.local.level = level
-    try:
-        yield
-    finally:
-        _LEVELS.local.level = previous
 
 
 class _JsonNull:
@@ -203,7 +167,7 @@ def _run_metadata(run: Mapping[str, str]) -> dict[str, str]:
     if out.setdefault("schema", LOG_SCHEMA) != LOG_SCHEMA:
         raise ValueError(f"run.schema must be {LOG_SCHEMA!r}, got {out['schema']!r}")
     out.setdefault("created_by", "pneutune")
-    out.setdefault("version", __version__)
+    out.setdefault("version", VERSION)
     return out
 
 
@@ -283,7 +247,7 @@ class RunLogWriter:
                 enable_crcs=True,
                 enable_data_crcs=True,
             )
-            self._mcap.start(profile="", library=f"pneutune/{__version__}; {LIBRARY_IDENTIFIER}")
+            self._mcap.start(profile="", library=f"pneutune/{VERSION}; {LIBRARY_IDENTIFIER}")
             self._mcap.add_metadata("rig", rig_md)
             self._mcap.add_metadata("run", run_md)
         except BaseException as exc:
@@ -330,7 +294,7 @@ class RunLogWriter:
         cid = self._channel(spec)
         add = self._mcap.add_message
         seq = self._counts[spec.topic]
-        with _zstd_level(self._level):
+        with zstd_level(self._level):
             for stamp, data in zip(ns, payloads, strict=True):
                 add(cid, stamp, data, stamp, 0)
         if len(ns):
@@ -413,7 +377,7 @@ class RunLogWriter:
             except ValueError as exc:
                 raise ValueError(f"{topic}: {exc} (params must be finite JSON values)") from exc
         cid = self._channels.get(topic) or self._channel(spec)
-        with _zstd_level(self._level):
+        with zstd_level(self._level):
             self._mcap.add_message(cid, ns, payload, ns, 0)
         self._counts[topic] += 1
         self._last_ns[topic] = ns
@@ -500,7 +464,7 @@ class RunLogWriter:
         if self._closed:
             return
         try:
-            with _zstd_level(self._level):
+            with zstd_level(self._level):
                 self._mcap.finish()
         except BaseException as exc:
             self._discard(exc)
