@@ -2,8 +2,8 @@
 check of any driver program.
 
 ``serve`` answers the pipe protocol ``pneutune.rig/1`` for the simulated rig on stdin/stdout
-(:mod:`pneutune.control.rig.pipe`); ``check "CMD ARGS"`` tells a driver's author whether their
-program speaks it (:mod:`pneutune.control.rig.conformance`).
+(:mod:`pneutune.control.rig.pipe_server`); ``check "CMD ARGS"`` tells a driver's author whether
+their program speaks it (:mod:`pneutune.control.rig.conformance`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from collections.abc import Sequence
 
 from pneutune.control.errors import PneutuneError
 from pneutune.control.rig.conformance import add_check_parser
-from pneutune.control.rig.pipe import PROTOCOL, add_serve_parser
+from pneutune.control.rig.pipe_server import add_serve_parser
+from pneutune.control.rig.wire import PROTOCOL
 
 
 def main(argv: Sequence[str] | None = None) -> int:

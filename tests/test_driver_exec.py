@@ -24,7 +24,7 @@ from pneutune.control.cli.deploy import main as deploy_main
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.conformance import CHECKS, check_driver
-from pneutune.control.rig.pipe import exec_command
+from pneutune.control.rig.exec_rig import exec_command
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_YAML = ROOT / "data" / "controller-paper.yaml"

@@ -2,13 +2,13 @@
 
 ``python -m pneutune.control.driver check "CMD ARGS"`` starts the driver program several times
 (one fresh process per session, as ``deploy --rig exec:`` does per scenario), talks the pipe
-protocol of :mod:`pneutune.control.rig.pipe` to it and reports each check, with exit status 0
+protocol of :mod:`pneutune.control.rig.wire` to it and reports each check, with exit status 0
 when all pass and 1 otherwise. The checks, in :data:`CHECKS` order:
 
 ``hello``
     ``H`` gets ``K`` and a JSON hello with ``protocol`` ``pneutune.rig/1``, a positive ``Ts``
     and a complete, valid rig block whose ``Ts`` (the control period) the hello's ``Ts`` (the
-    sample period) divides (:func:`~pneutune.control.rig.pipe.check_rig_block`), within the
+    sample period) divides (:func:`~pneutune.control.rig.wire.check_rig_block`), within the
     startup timeout; with ``--sample-period S``, the hello's ``Ts`` is S.
 ``sequence``
     ``samples`` rounds of ``R``, ``W`` (all valves closed), ``A``, each answered ``K`` with
@@ -52,18 +52,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pneutune.control.errors import ExperimentError
-from pneutune.control.rig.pipe import (
+from pneutune.control.rig.driver_process import DriverProcess
+from pneutune.control.rig.exec_rig import exec_command
+from pneutune.control.rig.wire import (
     DEFAULT_STARTUP_TIMEOUT,
     DEFAULT_TIMEOUT,
     FRAME_DUTIES,
     FRAME_READ,
     FRAME_TIME,
     PROTOCOL,
-    DriverProcess,
     RigErrorReply,
     RigIOError,
     check_rig_block,
-    exec_command,
     parse_hello,
 )
 

@@ -48,9 +48,9 @@ from pneutune.control.rig.identification_run import (
     position_loop,
     samples_per_control,
 )
-from pneutune.control.rig.pipe import RigIOError
 from pneutune.control.rig.protocol import Rig, SimulatedRig
 from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES, Event, Supervisor, SupervisorSettings
+from pneutune.control.rig.wire import RigIOError
 
 #: Margin the supervisor keeps between the piston and each end stop outside the planned
 #: contacts, as a fraction of the stroke (1 mm on a 50 mm stroke). The protocols move within

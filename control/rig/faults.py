@@ -1,9 +1,9 @@
 """Fault injection through the simulated rig, for the supervisor's tests and demonstrations.
 
-:class:`FaultySimRig` is the in-process simulated rig (:class:`~pneutune.control.rig.pipe.
-DeploySimRig`) with a list of :class:`Fault` records, each active from its time ``t`` on. The
-plant and its noise are untouched (the same noise draws happen every sample), so a faulty run
-equals the clean run up to the first fault.
+:class:`FaultySimRig` is the in-process simulated rig
+(:class:`~pneutune.control.rig.deploy_simrig.DeploySimRig`) with a list of :class:`Fault`
+records, each active from its time ``t`` on. The plant and its noise are untouched (the same
+noise draws happen every sample), so a faulty run equals the clean run up to the first fault.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError
 from pneutune.control.plant.params import PlantParams
-from pneutune.control.rig.pipe import DeploySimRig
+from pneutune.control.rig.deploy_simrig import DeploySimRig
 from pneutune.control.rig.supervisor import CHANNELS
 
 FaultKind = Literal["nan", "stale", "value", "offset", "supply"]
@@ -77,7 +77,7 @@ class FaultySimRig(DeploySimRig):
         What goes wrong, and when: on the rig's clock from its start, a homing move included
         (unlike the plant's force steps, which follow the scenario's start).
     x0, pressures0, seed
-        As :class:`~pneutune.control.rig.pipe.DeploySimRig`.
+        As :class:`~pneutune.control.rig.deploy_simrig.DeploySimRig`.
     report_sample_times : bool
         False: :meth:`sample_times` returns None (a rig that cannot tell a new sample from an
         old one; the supervisor then judges staleness on the values).

@@ -5,10 +5,11 @@ excitation protocols (:mod:`pneutune.control.rig.identification_run`) call; a
 :class:`SimulatedRig` also tells the truth a real rig cannot measure (``/sim/truth``).
 
 Implementations shipped: :class:`pneutune.control.rig.simrig.SimRig` and its subclasses
-:class:`~pneutune.control.rig.pipe.DeploySimRig` and
-:class:`~pneutune.control.rig.faults.FaultySimRig` (in process), :class:`~pneutune.control.rig.
-pipe.ExecRig` (any driver program speaking the pipe protocol ``pneutune.rig/1``) and
-:class:`~pneutune.control.rig.pipe.PipeRig` (the example simulated rig in a child process).
+:class:`~pneutune.control.rig.deploy_simrig.DeploySimRig` and
+:class:`~pneutune.control.rig.faults.FaultySimRig` (in process),
+:class:`~pneutune.control.rig.exec_rig.ExecRig` (any driver program speaking the pipe protocol
+``pneutune.rig/1``) and :class:`~pneutune.control.rig.exec_rig.PipeRig` (the example simulated
+rig in a child process).
 
 The contract (docs/deploy.md has the long form)
 -----------------------------------------------

@@ -63,9 +63,10 @@ from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.law.darc import MEAS_SIZE, S_THETA, init_state, step_into
 from pneutune.control.law.layout import pack
 from pneutune.control.logs.recording import Recording
-from pneutune.control.rig.pipe import DeploySimRig, RigIOError
+from pneutune.control.rig.deploy_simrig import DeploySimRig
 from pneutune.control.rig.protocol import Rig, SimulatedRig
 from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES, Event, Supervisor, SupervisorSettings
+from pneutune.control.rig.wire import RigIOError
 from pneutune.control.sim.closed_loop import (
     LOG_INDEX,
     ClosedLoopResult,
@@ -188,6 +189,32 @@ class LoopResult:
     state: np.ndarray
 
 
+@dataclass(frozen=True)
+class LoopSettings:
+    """How :func:`run_loop` runs: the options a deploy run gives every loop it starts.
+
+    Attributes
+    ----------
+    realtime : bool
+        Pace the loop to wall time.
+    record_truth : bool
+        Record ``rig.truth()`` as ``/sim/truth``; the rig must then be a
+        :class:`~pneutune.control.rig.protocol.SimulatedRig`.
+    fail_safe : 4 floats
+        Duties written on a fault.
+    start_tolerance : float
+        Largest |x(0) - x_r(0)| [m].
+    spin_s : float
+        Realtime: busy-wait this long before each deadline instead of sleeping [s].
+    """
+
+    realtime: bool = False
+    record_truth: bool = False
+    fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES
+    start_tolerance: float = START_TOLERANCE
+    spin_s: float = 5.0e-4
+
+
 def _wait_until(deadline_ns: int, spin_ns: int) -> int:
     """Sleep until ``spin_ns`` before the deadline, then spin; return the time of arrival."""
     while True:
@@ -212,13 +239,246 @@ def _warm_up(cfg: np.ndarray, ref: np.ndarray) -> None:
     step_into(scratch, meas, cfg, np.empty(4))
 
 
+class _Pacer:
+    """The loop's clock: the realtime schedule (module docstring) and every iteration's timing.
+
+    Parameters
+    ----------
+    n : int
+        Iterations of the loop.
+    Ts : float
+        The rig's sample period [s].
+    realtime, spin_s
+        As :class:`LoopSettings`.
+    """
+
+    def __init__(self, n: int, Ts: float, realtime: bool, spin_s: float) -> None:
+        self.Ts = Ts
+        self.realtime = realtime
+        self.period_ns = round(Ts * 1e9)
+        self.spin_ns = round(spin_s * 1e9)
+        self.step_ns = np.zeros(n, dtype=np.int64)
+        self.loop_ns = np.zeros(n, dtype=np.int64)
+        self.iter_ns = np.zeros(n, dtype=np.int64)
+        self.late_ns = np.zeros(n if realtime else 0, dtype=np.int64)
+        self.overruns = 0
+        self.slipped = 0
+        self.n_timed = 0
+        self.wall0 = 0
+        self.origin = 0
+
+    def start(self) -> None:
+        """Start the wall clock and the schedule: iteration 0 is due now."""
+        self.wall0 = time.perf_counter_ns()
+        self.origin = self.wall0
+
+    def begin(self, k: int) -> int:
+        """Wait for iteration ``k``'s due time (when paced); the time it starts [ns]."""
+        if not self.realtime:
+            return time.perf_counter_ns()
+        due = self.origin + k * self.period_ns
+        start = _wait_until(due, self.spin_ns)
+        late = start - due
+        self.late_ns[k] = late
+        if late > self.period_ns:  # shift the schedule: no burst of catch-up iterations
+            self.origin += late
+            self.slipped += late
+        return start
+
+    def timed(self, k: int, t: float, start: int, step_ns: int, written: int,
+              end: int) -> Event | None:
+        """Keep iteration ``k``'s latencies (times in ns); the warning of the first overrun."""
+        self.step_ns[k] = step_ns
+        self.loop_ns[k] = written - start
+        self.iter_ns[k] = end - start
+        self.n_timed = k + 1
+        next_due = self.origin + (k + 1) * self.period_ns
+        if not (self.realtime and end > next_due):
+            return None
+        self.overruns += 1
+        if self.overruns > 1:
+            return None
+        over_us = (end - next_due) / 1e3
+        return Event(t, "warning", "deadline_overrun",
+                     f"iteration at t={t:.4f} s took {(end - start) / 1e3:.0f} µs and ended "
+                     f"{over_us:.0f} µs after the next sample was due (Ts = {self.Ts * 1e3:g} ms)")
+
+    def finish(self, completed: bool) -> TimingStats:
+        """The run's timing; a paced run that ``completed`` first waits out its last period
+        (a loop that follows starts its own schedule on the tick)."""
+        if self.realtime and completed:
+            _wait_until(self.origin + self.step_ns.size * self.period_ns, self.spin_ns)
+        wall = time.perf_counter_ns() - self.wall0
+        m = self.n_timed
+        return _stats(self.step_ns[:m], self.loop_ns[:m], self.iter_ns[:m], self.late_ns[:m],
+                      self.realtime, self.overruns, self.slipped, wall)
+
+
+class _LoopLog:
+    """What a loop records per sample: sensors, duties, the logged controller state, the truth.
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig; with ``record_truth`` it must be a
+        :class:`~pneutune.control.rig.protocol.SimulatedRig`.
+    ref : (N, 3) float64
+        The reference, recorded as it is.
+    Ts : float
+        The sample period [s].
+    record_truth : bool
+        Record ``rig.truth()`` at every sample.
+
+    Raises
+    ------
+    TypeError
+        ``record_truth`` for a rig that is not a ``SimulatedRig``.
+    """
+
+    def __init__(self, rig: Rig, ref: np.ndarray, Ts: float, record_truth: bool) -> None:
+        self.truth_fn: Callable[[], np.ndarray] | None = None
+        if record_truth:
+            if not isinstance(rig, SimulatedRig):
+                raise TypeError(f"record_truth needs a SimulatedRig (one with truth()), got "
+                                f"{type(rig).__name__}")
+            self.truth_fn = rig.truth
+        n = ref.shape[0]
+        rec = Recording(n, Ts, truth=self.truth_fn is not None, reference=True,
+                        control_state=True)
+        self.rec = rec
+        self.sensors, self.duties, self.truth = rec.sensors_, rec.duties_, rec.truth_
+        self.state = rec.state_ if rec.state_ is not None else np.empty((n, LOG_INDEX.shape[0]))
+        if rec.reference_ is not None:
+            rec.reference_[:] = ref
+
+    def sample(self, k: int, sensors: np.ndarray, duties: np.ndarray,
+               state: np.ndarray) -> None:
+        """Record sample ``k``: its readings, the duties written and the controller state."""
+        self.sensors[k] = sensors
+        self.duties[k] = duties
+        self.state[k, :] = state[LOG_INDEX]
+        if self.truth is not None and self.truth_fn is not None:
+            self.truth[k] = self.truth_fn()
+
+    def finish(self, n_done: int, events: list[Event]) -> Recording:
+        """The recording of the first ``n_done`` samples, with ``events``."""
+        self.rec.truncate(n_done)
+        for e in events:
+            self.rec.event(e.t, e.level, e.code, e.message)
+        return self.rec
+
+
+class _Stop(Exception):
+    """A fault that ends the loop at sample ``k`` (rig time ``t`` on the loop's clock);
+    ``sensors`` are that sample's readings, when it has any."""
+
+    def __init__(self, k: int, t: float, fault: Event, sensors: np.ndarray | None = None) -> None:
+        super().__init__(fault.message)
+        self.k = k
+        self.t = t
+        self.fault = fault
+        self.sensors = sensors
+
+    @classmethod
+    def rig_io(cls, k: int, t: float, message: str) -> _Stop:
+        """The fault ``rig_io`` at sample ``k`` (time ``t``): a call of the rig failed."""
+        return cls(k, t, Event(t, "error", "rig_io", message))
+
+
+def _read_sample(rig: Rig, k: int, t: float,
+                 first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None,
+                 clock_offset: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """Sample ``k``'s sensors and their sample times shifted to the loop's clock.
+
+    At k = 0, ``first`` (a reading already taken, or the error it raised) stands for the read.
+
+    Raises
+    ------
+    _Stop
+        The read failed: the fault ``rig_io``.
+    """
+    try:
+        if k == 0 and isinstance(first, RigIOError):
+            raise first
+        if k == 0 and first is not None:
+            s, stamps = first
+        else:
+            s = rig.read()
+            stamps = rig.sample_times()
+    except RigIOError as exc:
+        raise _Stop.rig_io(k, t, f"reading the rig failed at t={t:.4f} s: {exc}") from None
+    if stamps is not None and clock_offset:
+        stamps = np.asarray(stamps, dtype=np.float64) - clock_offset
+    return s, stamps
+
+
+def _write_duties(rig: Rig, k: int, t: float, duties: np.ndarray) -> None:
+    """Write sample ``k``'s duties.
+
+    Raises
+    ------
+    _Stop
+        The write failed: the fault ``rig_io`` at sample ``k``.
+    """
+    try:
+        rig.write(duties)
+    except RigIOError as exc:
+        raise _Stop.rig_io(k, t, f"writing the duties failed at t={t:.4f} s: {exc}") from None
+
+
+def _advance(rig: Rig, k: int, t: float, Ts: float) -> None:
+    """Move the rig on from sample ``k`` (time ``t``) to the next.
+
+    Raises
+    ------
+    _Stop
+        The advance failed: the fault ``rig_io`` at sample ``k + 1``.
+    """
+    try:
+        rig.advance()
+    except RigIOError as exc:
+        raise _Stop.rig_io(k + 1, t + Ts,
+                           f"advancing the rig failed at t={t:.4f} s: {exc}") from None
+
+
+def _check_sample(supervisor: Supervisor | None, k: int, t: float, s: np.ndarray,
+                  stamps: np.ndarray | None, x_r0: float, start_tolerance: float) -> None:
+    """Let sample ``k`` reach the control law only if the supervisor accepts it and, at
+    k = 0, the piston lies within ``start_tolerance`` of ``x_r0``.
+
+    Raises
+    ------
+    _Stop
+        The supervisor's fault, or ``start_position``; with the sample's readings.
+    """
+    fault = supervisor.check_sensors(t, s, stamps) if supervisor is not None else None
+    if fault is None and k == 0 and not abs(float(s[0]) - x_r0) <= start_tolerance:
+        fault = Event(t, "error", "start_position",
+                      f"the piston is at x = {float(s[0]) * 1e3:.3f} mm, not at the start of "
+                      f"the reference x_r(0) = {x_r0 * 1e3:.3f} mm (tolerance "
+                      f"{start_tolerance * 1e3:g} mm): move it there first (deploy --home "
+                      f"auto does, under the controller)")
+    if fault is not None:
+        raise _Stop(k, t, fault, s)
+
+
+def _fail_safe(rig: Rig, duties: np.ndarray, fault: Event, t: float) -> Event:
+    """Write the fail-safe ``duties`` now; the fault as logged, naming them (and a failed
+    write)."""
+    try:
+        rig.write(duties)
+    except RigIOError as exc:
+        fault = Event(fault.t, fault.level, fault.code,
+                      f"{fault.message}; writing the fail-safe duties failed too ({exc})")
+    return Event(fault.t, fault.level, fault.code,
+                 f"{fault.message}; fail-safe: valves [a_in, a_out, b_in, b_out] = "
+                 f"{duties.tolist()} from t={t:.4f} s")
+
+
 def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
-             supervisor: Supervisor | None = None, *, realtime: bool = False,
-             record_truth: bool = False,
-             fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
-             start_tolerance: float = START_TOLERANCE, spin_s: float = 5.0e-4,
-             on_sample: Callable[[int], None] | None = None,
+             supervisor: Supervisor | None = None, settings: LoopSettings | None = None, *,
              first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None = None,
+             on_sample: Callable[[int], None] | None = None,
              clock_offset: float = 0.0) -> LoopResult:
     """Run the controller against a rig for ``len(reference)`` samples (module docstring).
 
@@ -232,23 +492,15 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
         ``[x_r, v_r, a_r]`` per sample [m, m/s, m/s^2].
     supervisor : Supervisor, optional
         The safety supervisor (reset here); None runs unsupervised (benchmarks only).
-    realtime : bool
-        Pace the loop to wall time.
-    record_truth : bool
-        Record ``rig.truth()`` as ``/sim/truth``; the rig must then be a
-        :class:`~pneutune.control.rig.protocol.SimulatedRig`.
-    fail_safe : 4 floats
-        Duties written on a fault.
-    start_tolerance : float
-        Largest |x(0) - x_r(0)| [m].
-    spin_s : float
-        Realtime: busy-wait this long before each deadline instead of sleeping [s].
-    on_sample : callable, optional
-        Called with k after each sample (progress display).
+    settings : LoopSettings, optional
+        Pacing, truth recording, fail-safe duties, start tolerance; default
+        ``LoopSettings()``.
     first : (sensors, sample_times) or RigIOError, optional
         The first sample's ``read()`` and ``sample_times()``, already taken (by
         :func:`run_scenario`, to decide on homing), or the error that reading raised: used for
         k = 0 instead of reading again (a rig_io fault for an error).
+    on_sample : callable, optional
+        Called with k after each sample (progress display).
     clock_offset : float
         Rig time of this loop's first sample [s] (after a homing move): ``sample_times()`` are
         shifted by it before the supervisor compares them with the loop's time, and the control
@@ -261,170 +513,70 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     Raises
     ------
     TypeError
-        ``record_truth`` for a rig that is not a ``SimulatedRig``.
+        ``settings.record_truth`` for a rig that is not a ``SimulatedRig``.
     """
-    truth_fn: Callable[[], np.ndarray] | None = None
-    if record_truth:
-        if not isinstance(rig, SimulatedRig):
-            raise TypeError(f"record_truth needs a SimulatedRig (one with truth()), got "
-                            f"{type(rig).__name__}")
-        truth_fn = rig.truth
+    opts = LoopSettings() if settings is None else settings
     ref = np.ascontiguousarray(reference, dtype=np.float64)
     n = ref.shape[0]
     Ts = float(rig.Ts)
+    log = _LoopLog(rig, ref, Ts, opts.record_truth)
     cfg = np.ascontiguousarray(cfg_vec, dtype=np.float64)
-    sample_times = rig.sample_times
-    rec = Recording(n, Ts, truth=truth_fn is not None, reference=True, control_state=True)
-    sensors_out, duties_out, truth_out = rec.sensors_, rec.duties_, rec.truth_
-    state_out = rec.state_ if rec.state_ is not None else np.empty((n, LOG_INDEX.shape[0]))
-    if rec.reference_ is not None:
-        rec.reference_[:] = ref
     if supervisor is not None:
         supervisor.reset()
-    fs = np.asarray(fail_safe, dtype=np.float64)
+    fs = np.asarray(opts.fail_safe, dtype=np.float64)
     meas = np.empty(MEAS_SIZE)
     duties = np.empty(4)
     cs = np.empty(0)
     events: list[Event] = []
     fault: Event | None = None
-    step_ns = np.zeros(n, dtype=np.int64)
-    loop_ns = np.zeros(n, dtype=np.int64)
-    iter_ns = np.zeros(n, dtype=np.int64)
-    late_ns = np.zeros(n if realtime else 0, dtype=np.int64)
-    period_ns = round(Ts * 1e9)
-    spin_ns = round(spin_s * 1e9)
-    overruns = 0
-    slipped = 0
     n_done = 0
-    n_timed = 0
+    pacer = _Pacer(n, Ts, opts.realtime, opts.spin_s)
     _warm_up(cfg, ref)
-    wall0 = time.perf_counter_ns()
-    origin = wall0
+    pacer.start()
     clock = time.perf_counter_ns
-
-    def stop(k: int, t: float, event: Event, sensors: np.ndarray | None) -> int:
-        """Fail-safe duties now; record the sample if its readings are loggable."""
-        try:
-            rig.write(fs)
-        except RigIOError as exc:
-            event = Event(event.t, event.level, event.code,
-                          f"{event.message}; writing the fail-safe duties failed too ({exc})")
-        events.append(Event(event.t, event.level, event.code,
-                            f"{event.message}; fail-safe: valves "
-                            f"[a_in, a_out, b_in, b_out] = {fs.tolist()} from t={t:.4f} s"))
-        if sensors is None or not np.all(np.isfinite(sensors)):
-            return k
-        sensors_out[k] = sensors
-        duties_out[k] = fs
-        if cs.size:
-            state_out[k, :] = cs[LOG_INDEX]
-        else:
-            st0 = init_state(cfg, float(ref[0, 0]), float(sensors[1]), float(sensors[2]))
-            state_out[k, :] = st0[LOG_INDEX]
-        if truth_out is not None and truth_fn is not None:
-            truth_out[k] = truth_fn()
-        return k + 1
-
-    for k in range(n):
-        t = k * Ts
-        if realtime:
-            due = origin + k * period_ns
-            start = _wait_until(due, spin_ns)
-            late = start - due
-            late_ns[k] = late
-            if late > period_ns:  # shift the schedule: no burst of catch-up iterations
-                origin += late
-                slipped += late
-        else:
-            start = clock()
-        try:
-            if k == 0 and isinstance(first, RigIOError):
-                raise first
-            if k == 0 and first is not None:
-                s, stamps = first
-            else:
-                s = rig.read()
-                stamps = sample_times()
-        except RigIOError as exc:
-            fault = Event(t, "error", "rig_io", f"reading the rig failed at t={t:.4f} s: {exc}")
-            n_done = stop(k, t, fault, None)
-            break
-        if stamps is not None and clock_offset:
-            stamps = np.asarray(stamps, dtype=np.float64) - clock_offset
-        if supervisor is not None:
-            fault = supervisor.check_sensors(t, s, stamps)
-        if fault is None and k == 0 and not abs(float(s[0]) - ref[0, 0]) <= start_tolerance:
-            fault = Event(t, "error", "start_position",
-                          f"the piston is at x = {float(s[0]) * 1e3:.3f} mm, not at the start of "
-                          f"the reference x_r(0) = {ref[0, 0] * 1e3:.3f} mm (tolerance "
-                          f"{start_tolerance * 1e3:g} mm): move it there first (deploy --home "
-                          f"auto does, under the controller)")
-        if fault is not None:
-            n_done = stop(k, t, fault, s)
-            break
-        if k == 0:
-            cs = init_state(cfg, float(ref[0, 0]), float(s[1]), float(s[2]))
-        meas[0] = t + clock_offset
-        meas[1:5] = s
-        meas[5:8] = ref[k]
-        t_step = clock()
-        step_into(cs, meas, cfg, duties)
-        t_step_end = clock()
-        try:
-            rig.write(duties)
-        except RigIOError as exc:
-            fault = Event(t, "error", "rig_io", f"writing the duties failed at t={t:.4f} s: {exc}")
-            n_done = stop(k, t, fault, None)
-            break
-        t_written = clock()
-        sensors_out[k] = s
-        duties_out[k] = duties
-        state_out[k, :] = cs[LOG_INDEX]
-        if truth_out is not None and truth_fn is not None:
-            truth_out[k] = truth_fn()
-        if supervisor is not None:
-            events.extend(supervisor.check_estimates(t, float(s[3]), cs[S_THETA:S_THETA + 6]))
-        n_done = k + 1
-        try:
-            rig.advance()
-        except RigIOError as exc:
-            fault = Event(t + Ts, "error", "rig_io",
-                          f"advancing the rig failed at t={t:.4f} s: {exc}")
-            n_done = stop(k + 1, t + Ts, fault, None)
-            break
-        end = clock()
-        step_ns[k] = t_step_end - t_step
-        loop_ns[k] = t_written - start
-        iter_ns[k] = end - start
-        n_timed = k + 1
-        if realtime and end > origin + (k + 1) * period_ns:
-            overruns += 1
-            if overruns == 1:
-                over_us = (end - origin - (k + 1) * period_ns) / 1e3
-                events.append(Event(t, "warning", "deadline_overrun",
-                                    f"iteration at t={t:.4f} s took {(end - start) / 1e3:.0f} µs "
-                                    f"and ended {over_us:.0f} µs after the next sample was due "
-                                    f"(Ts = {Ts * 1e3:g} ms)"))
-        if on_sample is not None:
-            on_sample(k)
-    if realtime and fault is None and n_done == n:  # the last period too: a loop that follows
-        _wait_until(origin + n * period_ns, spin_ns)  # starts its own schedule on the tick
-    wall = time.perf_counter_ns() - wall0
-    if fault is not None:  # the logged form, which also names the fail-safe duties
-        fault = next(e for e in events if e.level == "error")
-    rec.truncate(n_done)
+    try:
+        for k in range(n):
+            t = k * Ts
+            start = pacer.begin(k)
+            s, stamps = _read_sample(rig, k, t, first, clock_offset)
+            _check_sample(supervisor, k, t, s, stamps, ref[0, 0], opts.start_tolerance)
+            if k == 0:
+                cs = init_state(cfg, float(ref[0, 0]), float(s[1]), float(s[2]))
+            meas[0] = t + clock_offset
+            meas[1:5] = s
+            meas[5:8] = ref[k]
+            t_step = clock()
+            step_into(cs, meas, cfg, duties)
+            t_step_end = clock()
+            _write_duties(rig, k, t, duties)
+            t_written = clock()
+            log.sample(k, s, duties, cs)
+            if supervisor is not None:
+                events.extend(supervisor.check_estimates(t, float(s[3]), cs[S_THETA:S_THETA + 6]))
+            n_done = k + 1
+            _advance(rig, k, t, Ts)
+            overrun = pacer.timed(k, t, start, t_step_end - t_step, t_written, clock())
+            if overrun is not None:
+                events.append(overrun)
+            if on_sample is not None:
+                on_sample(k)
+    except _Stop as stop:
+        fault = _fail_safe(rig, fs, stop.fault, stop.t)
+        events.append(fault)
+        n_done = stop.k
+        sensors = stop.sensors
+        if sensors is not None and np.all(np.isfinite(sensors)):  # a loggable fault sample
+            state = cs if cs.size else init_state(cfg, float(ref[0, 0]), float(sensors[1]),
+                                                  float(sensors[2]))
+            log.sample(stop.k, sensors, fs, state)
+            n_done = stop.k + 1
+    timing = pacer.finish(completed=fault is None and n_done == n)
     events.sort(key=lambda e: e.t)
-    for e in events:
-        rec.event(e.t, e.level, e.code, e.message)
-    timing = _stats(step_ns[:n_timed], loop_ns[:n_timed], iter_ns[:n_timed],
-                    late_ns[:n_timed], realtime, overruns, slipped, wall)
-    return LoopResult(rec, n_done, fault, events, timing, cs)
+    return LoopResult(log.finish(n_done, events), n_done, fault, events, timing, cs)
 
 
 def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
-                supervisor: Supervisor | None = None, *, realtime: bool = False,
-                record_truth: bool = False,
-                fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES,
+                supervisor: Supervisor | None = None, settings: LoopSettings | None = None, *,
                 move_s: float = HOME_MOVE_S, hold_s: float = HOME_HOLD_S,
                 first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None = None,
                 on_sample: Callable[[int], None] | None = None) -> LoopResult:
@@ -443,19 +595,23 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
         Where the move ends: the scenario's x_r(0) [m].
     supervisor : Supervisor, optional
         As :func:`run_loop` (reset here).
-    realtime, record_truth, fail_safe, on_sample
-        As :func:`run_loop`.
+    settings : LoopSettings, optional
+        As :func:`run_loop`; its ``start_tolerance`` does not apply (the move starts where
+        the piston is).
     move_s, hold_s : float
         Durations of the move and the hold [s].
     first : (sensors, sample_times) or RigIOError, optional
         The first sample's reading, already taken (:func:`run_scenario`), or the error it
         raised; default: read it here.
+    on_sample : callable, optional
+        As :func:`run_loop`.
 
     Returns
     -------
     LoopResult
         Its recording holds the homing samples; ``fault`` is set if the supervisor stopped it.
     """
+    opts = LoopSettings() if settings is None else settings
     if first is None:
         try:
             first = (rig.read(), rig.sample_times())
@@ -465,9 +621,9 @@ def homing_move(rig: Rig, cfg_vec: np.ndarray, target: float,
     x0 = math.nan if isinstance(first, RigIOError) else float(first[0][0])
     # a NaN first position is the supervisor's sensor_nan at k = 0: start the move anywhere
     ref = move_and_hold(t, x0 if math.isfinite(x0) else target, target, move_s)
-    return run_loop(rig, cfg_vec, ref, supervisor, realtime=realtime, record_truth=record_truth,
-                    fail_safe=fail_safe, on_sample=on_sample, first=first,
-                    start_tolerance=math.inf)
+    return run_loop(rig, cfg_vec, ref, supervisor,
+                    dataclasses.replace(opts, start_tolerance=math.inf),
+                    first=first, on_sample=on_sample)
 
 
 def _after_homing(rig: Rig, scenario: Scenario, plant: PlantConfig | None,
@@ -508,7 +664,7 @@ def _after_homing(rig: Rig, scenario: Scenario, plant: PlantConfig | None,
 
 
 @dataclass
-class DeployResult:
+class ScenarioResult:
     """One scenario deployed on a rig.
 
     Attributes
@@ -586,7 +742,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
                  seed: int | None = None,
                  on_sample: Callable[[int], None] | None = None,
                  home: str = "auto",
-                 start_tolerance: float = START_TOLERANCE) -> DeployResult:
+                 start_tolerance: float = START_TOLERANCE) -> ScenarioResult:
     """Deploy ``controller`` on ``rig`` for one scenario and compute the metrics.
 
     Parameters
@@ -602,7 +758,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     supervisor : Supervisor, optional
         Default: one from the controller's ``limits`` (:meth:`SupervisorSettings.from_controller`).
     realtime, record_truth, fail_safe
-        As :func:`run_loop`.
+        As :class:`LoopSettings`.
     cfg_vec : ndarray, optional
         Pre-packed controller.
     duration : float, optional
@@ -619,7 +775,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
 
     Returns
     -------
-    DeployResult
+    ScenarioResult
     """
     rig_meta = dict(rig.rig_metadata())
     ref = scenario_reference(scenario, rig_meta)
@@ -628,6 +784,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     sup = supervisor if supervisor is not None else Supervisor(
         SupervisorSettings.from_controller(controller))
     cfg = pack(controller) if cfg_vec is None else cfg_vec
+    settings = LoopSettings(realtime=realtime, record_truth=record_truth, fail_safe=fail_safe,
+                            start_tolerance=start_tolerance)
     if home not in HOME_MODES:
         raise ValueError(f"home must be one of {HOME_MODES}, got {home!r}")
     homing: LoopResult | None = None
@@ -647,8 +805,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
             start = getattr(rig, "set_scenario_start", None)
             if callable(start):
                 start(None)  # no timed step fires during the move
-            homing = homing_move(rig, cfg, float(ref[0, 0]), sup, realtime=realtime,
-                                 record_truth=record_truth, fail_safe=fail_safe, first=first)
+            homing = homing_move(rig, cfg, float(ref[0, 0]), sup, settings, first=first)
             first = None
     if homing is not None and homing.fault is not None:  # the scenario does not run
         loop = homing
@@ -657,9 +814,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
     else:
         offset = homing.n_done * float(rig_meta["Ts"]) if homing is not None else 0.0
         notes = _after_homing(rig, scenario, plant, homing, offset, float(ref[0, 0]))
-        loop = run_loop(rig, cfg, ref, sup, realtime=realtime, record_truth=record_truth,
-                        fail_safe=fail_safe, on_sample=on_sample, first=first,
-                        clock_offset=offset, start_tolerance=start_tolerance)
+        loop = run_loop(rig, cfg, ref, sup, settings, first=first, on_sample=on_sample,
+                        clock_offset=offset)
         loop.events[:0] = notes
         loop.recording.events_[:0] = [(e.t, e.level, e.code, e.message) for e in notes]
     rec = loop.recording
@@ -681,7 +837,7 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         run_meta["seed"] = str(seed)
     if loop.fault is not None:
         run_meta["fault"] = loop.fault.code
-    return DeployResult(scenario, controller, loop, metrics, rig_meta, plant, seed, run_meta,
+    return ScenarioResult(scenario, controller, loop, metrics, rig_meta, plant, seed, run_meta,
                         homing)
 
 
@@ -721,6 +877,19 @@ def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
     return rig, pcfg, seed_used
 
 
-__all__ = ["HOME_HOLD_S", "HOME_MODES", "HOME_MOVE_S", "START_TOLERANCE", "STATUS_FAULT",
-           "DeployResult", "LoopResult", "TimingStats", "homing_move", "run_loop", "run_scenario",
-           "scenario_reference", "sim_rig_for"]
+__all__ = [
+    "HOME_HOLD_S",
+    "HOME_MODES",
+    "HOME_MOVE_S",
+    "START_TOLERANCE",
+    "STATUS_FAULT",
+    "LoopResult",
+    "LoopSettings",
+    "ScenarioResult",
+    "TimingStats",
+    "homing_move",
+    "run_loop",
+    "run_scenario",
+    "scenario_reference",
+    "sim_rig_for",
+]
