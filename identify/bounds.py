@@ -46,25 +46,18 @@ class ThetaBounds:
         return self.hi - self.lo
 
 
-def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
-                 smooth: np.ndarray, smooth_boot: np.ndarray, stribeck_b_v: float,
-                 F_C: float, F_S: float, D: np.ndarray, D_std: np.ndarray,
-                 low_speed_margin: tuple[float, float] = (0.0, 0.0),
-                 stiction_resolved: bool | None = None) -> ThetaBounds:
-    """Assemble θ and its bounds.
+@dataclass(frozen=True)
+class FrictionFit:
+    """What the friction fit gives the bounds of θ2..θ4.
 
-    Parameters
+    Attributes
     ----------
-    mass, mass_range, mass_basis : float, (float, float), str
-        θ1 and its interval [kg], and how it was obtained.
     smooth : ndarray (3,)
         Smooth-model θ2 (F_n) [N], θ3 (b_v) [N s/m], θ4 (A_f) [N].
     smooth_boot : ndarray (B, 3)
         Bootstrap replicates of ``smooth``.
     stribeck_b_v, F_C, F_S : float
-        The Stribeck fit's viscous coefficient and friction levels.
-    D, D_std : ndarray (2,)
-        θ5, θ6 (D_an, D_bn) [Pa/s] and their standard errors.
+        The Stribeck fit's viscous coefficient [N s/m] and friction levels [N].
     low_speed_margin : (float, float)
         Extra half-widths of (b_v, A_f) when the log has few slow sliding samples: a
         Coulomb-level error ΔF is then absorbed by the viscous term as ΔF / v_rms.
@@ -72,6 +65,38 @@ def theta_bounds(mass: float, mass_range: tuple[float, float], mass_basis: str,
         Whether the friction fit measured the stiction peak
         (``FrictionIdentifier.stiction_resolved_``); default: F_S - F_C >= 2 % of F_C.
     """
+
+    smooth: np.ndarray
+    smooth_boot: np.ndarray
+    stribeck_b_v: float
+    F_C: float
+    F_S: float
+    low_speed_margin: tuple[float, float] = (0.0, 0.0)
+    stiction_resolved: bool | None = None
+
+
+def theta_bounds(*, mass: float, mass_range: tuple[float, float], mass_basis: str,
+                 friction: FrictionFit, D: np.ndarray, D_std: np.ndarray) -> ThetaBounds:
+    """Assemble θ and its bounds.
+
+    Parameters
+    ----------
+    mass, mass_range, mass_basis : float, (float, float), str
+        θ1 and its interval [kg], and how it was obtained.
+    friction : FrictionFit
+        The smooth model's θ2..θ4, their bootstrap, and the Stribeck fit they are compared
+        with.
+    D, D_std : ndarray (2,)
+        θ5, θ6 (D_an, D_bn) [Pa/s] and their standard errors.
+
+    Returns
+    -------
+    ThetaBounds
+        θ nominal, min and max, and the basis of each half-width.
+    """
+    smooth, smooth_boot = friction.smooth, friction.smooth_boot
+    stribeck_b_v, F_C, F_S = friction.stribeck_b_v, friction.F_C, friction.F_S
+    low_speed_margin, stiction_resolved = friction.low_speed_margin, friction.stiction_resolved
     sd = np.std(smooth_boot, axis=0, ddof=1) if len(smooth_boot) > 1 else np.zeros(3)
     Fn, bv, Af = smooth
     half_Fn = max(Z * sd[0], MIN_HALF["F_n"])

@@ -43,10 +43,19 @@ from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
 from pneutune.control.plant.valves import open_fractions, valve_open_fractions
 
+from .valve_onsets import Onset
+
 #: Longest delay searched, in PWM periods (the plant allows up to 4).
 MAX_DELAY_PERIODS = 0.5
 #: Relative cost advantage another carrier phase needs over phase 0 (:func:`phase_search`).
 PHASE_TOLERANCE = 0.1
+#: Loop delays scanned, evenly over [0, Ts] (0.5 ms apart at Ts = 4 ms).
+LOOP_DELAY_POINTS = 9
+#: Relative cost advantage a loop delay needs over none, and the tolerance of its range.
+LOOP_DELAY_TOLERANCE = 0.05
+#: Slack around a valve's step-onset range when it bounds the opening delay [s] (the onset grid
+#: step, and the carrier-timed opening of the averaged model, are coarser than the search).
+ONSET_MARGIN = 2.5e-4
 
 
 @dataclass(frozen=True)
@@ -333,5 +342,259 @@ def timing_bounds(period: float) -> tuple[float, float]:
     return 0.0, MAX_DELAY_PERIODS * period
 
 
-__all__ = ["MAX_DELAY_PERIODS", "PHASE_TOLERANCE", "OpenFractions", "Timing", "TimingCost",
-           "coordinate_search", "phase_search", "timing_bounds"]
+def opening_bounds(onset: Onset | None, write_delay: float, period: float
+                   ) -> tuple[float, float]:
+    """Search range of a valve's opening delay [s].
+
+    A valve's step onset (:func:`~.valve_onsets.step_onsets`) holds its opening delay plus
+    the loop delay: the range is the onset's, widened by :data:`ONSET_MARGIN`, less the loop
+    delay, within :func:`timing_bounds`. Without an onset, :func:`timing_bounds`.
+
+    Parameters
+    ----------
+    onset : Onset or None
+        The valve's delay from a full-opening command to the chamber pressure's response.
+    write_delay : float
+        The loop delay [s] (:attr:`OpenFractions.write_delay`).
+    period : float
+        PWM period [s].
+
+    Returns
+    -------
+    (float, float)
+        Lowest and highest opening delay [s].
+    """
+    t_lo, t_hi = timing_bounds(period)
+    if onset is None:
+        return t_lo, t_hi
+    hi_on = min(t_hi, max(t_lo, onset.high + ONSET_MARGIN - write_delay))
+    return min(hi_on, max(t_lo, onset.low - ONSET_MARGIN - write_delay)), hi_on
+
+
+#: ``cost_for(held, b)``: the chamber cost for the critical pressure ratios ``b`` of the four
+#: valves, with the terms it does not solve for (the constant terms held) from the parameters
+#: ``held`` (:class:`TimingCost`).
+CostFor = Callable[[np.ndarray, np.ndarray], TimingCost]
+#: ``refit(theta, timings, phase)``: the chamber fit's parameters refitted, starting from
+#: ``theta``, on the valve openings of these timings and carrier phase; and their critical
+#: pressure ratios b.
+Refit = Callable[[np.ndarray, Sequence[Timing], float], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class TimingSearch:
+    """The valve timings, carrier phase and loop delay found by :func:`search_timings`.
+
+    Attributes
+    ----------
+    timings : tuple of 4 Timing
+        Delays and minimum pulse per valve (a_in, a_out, b_in, b_out).
+    phase : float
+        Carrier time at the log's first sample [s].
+    theta : ndarray
+        The chamber fit's parameters from the last refit.
+    phase_costs : ndarray
+        Costs of the coarse phase grid (:func:`phase_search`) [kPa^2].
+    loop_delay : float
+        Every duty acts this long after its sample [s] (0: no loop delay found).
+    loop_delay_range : (float, float)
+        The loop delays scanned whose cost is within :data:`LOOP_DELAY_TOLERANCE` of the
+        best, widened by half a grid step [s].
+    loop_delay_costs : (ndarray, ndarray)
+        The loop delays scanned [s] and their costs [kPa^2].
+    """
+
+    timings: tuple[Timing, ...]
+    phase: float
+    theta: np.ndarray
+    phase_costs: np.ndarray
+    loop_delay: float
+    loop_delay_range: tuple[float, float]
+    loop_delay_costs: tuple[np.ndarray, np.ndarray]
+
+
+class _Search:
+    """The timings being searched (a list of 4, replaced in place) and the steps of
+    :func:`search_timings`."""
+
+    def __init__(self, frac: OpenFractions, timings: Sequence[Timing],
+                 onsets: Sequence[Onset | None], cost_for: CostFor, period: float) -> None:
+        self.frac = frac
+        self.timings = list(timings)
+        self.onsets = list(onsets)
+        self.cost_for = cost_for
+        self.period = period
+        self.t_lo, self.t_hi = timing_bounds(period)
+
+    def bounds(self, i: int) -> tuple[float, float]:
+        """Range of valve i's opening delay at the current loop delay."""
+        return opening_bounds(self.onsets[i], self.frac.write_delay, self.period)
+
+    def coarse(self, held: np.ndarray, b: np.ndarray) -> None:
+        """A grid of (opening delay, pulse lengthening) per valve, the others held, at phase
+        0: the curve's timings are a poor start where its duties were not steady. A valve with
+        an onset starts with its opening delay moved into the onset's range."""
+        cost = self.cost_for(held, b)
+        timings, t_lo, t_hi = self.timings, self.t_lo, self.t_hi
+        for i in range(4):
+            t = timings[i]
+            on_lo, on_hi = self.bounds(i)
+            if self.onsets[i] is not None:
+                on0 = float(np.clip(t.delay_on, on_lo, on_hi))
+                t = Timing(on0, max(0.0, t.delay_off + on0 - t.delay_on), min(t.min_pulse, on0))
+                timings[i] = t
+            best = (cost(i // 2, timings, 0.0), t)
+            grid_on = (np.linspace(on_lo, on_hi, 9) if self.onsets[i] is not None
+                       else np.linspace(t_lo, 0.8 * t_hi, 9))
+            for on in grid_on:
+                for dl in np.linspace(-0.3 * t_hi, 0.5 * t_hi, 9):
+                    cand = Timing(on, max(0.0, on + dl), min(t.min_pulse, on))
+                    c = cost(i // 2, [*timings[:i], cand, *timings[i + 1:]], 0.0)
+                    if c < best[0]:
+                        best = (c, cand)
+            timings[i] = best[1]
+
+    def pairs(self, held: np.ndarray, b: np.ndarray, phase: float, step: float,
+              levels: int) -> None:
+        """Coordinate search of each chamber's two valves over (delay_on, delay_off -
+        delay_on, min_pulse): the first moves both delays together, along the valley where
+        the pulse widths stay and only their timing changes."""
+        chamber_cost = self.cost_for(held, b)
+        timings, t_lo, t_hi = self.timings, self.t_lo, self.t_hi
+
+        def unpack(x: np.ndarray, j: int) -> Timing:
+            on = x[3 * j]
+            return Timing(on, max(0.0, on + x[3 * j + 1]), min(x[3 * j + 2], on))
+
+        for ch in range(2):
+            pair = (2 * ch, 2 * ch + 1)
+
+            def cost(x: np.ndarray, ch: int = ch, pair: tuple[int, int] = pair) -> float:
+                tms = list(timings)
+                for j, i in enumerate(pair):
+                    tms[i] = unpack(x, j)
+                return chamber_cost(ch, tms, phase)
+
+            x0 = np.array([v for i in pair for v in (
+                timings[i].delay_on, timings[i].delay_off - timings[i].delay_on,
+                timings[i].min_pulse)])
+            lo_x = np.tile([t_lo, -t_hi, t_lo], 2)
+            hi_x = np.tile([t_hi, t_hi, t_hi], 2)
+            for j, i in enumerate(pair):
+                lo_x[3 * j], hi_x[3 * j] = self.bounds(i)
+            x0 = np.clip(x0, lo_x, hi_x)
+            x, _ = coordinate_search(cost, x0, lo_x, hi_x, np.full(6, step), levels=levels)
+            for j, i in enumerate(pair):
+                timings[i] = unpack(x, j)
+
+    def shifted(self, d: float) -> list[Timing]:
+        """The timings with ``d`` taken off the opening delays an onset holds."""
+        out = list(self.timings)
+        for i, tm in enumerate(self.timings):
+            if self.onsets[i] is None:
+                continue
+            on = float(np.clip(tm.delay_on - d, *self.bounds(i)))
+            out[i] = Timing(on, max(0.0, tm.delay_off - d), min(tm.min_pulse, on))
+        return out
+
+    def loop_delay(self, theta: np.ndarray, b: np.ndarray, phase: float, refit: Refit
+                   ) -> tuple[np.ndarray, tuple[float, float], tuple[np.ndarray, np.ndarray]]:
+        """The loop-delay scan of :func:`search_timings`; sets ``frac.write_delay``.
+
+        Returns the refitted parameters (``theta`` where no loop delay is adopted), the loop
+        delay range and the scan's delays and costs.
+        """
+        frac = self.frac
+        cost = self.cost_for(theta, b)
+        grid = np.linspace(0.0, frac.Ts, LOOP_DELAY_POINTS)
+        costs = []
+        for d in grid:
+            frac.write_delay = float(d)
+            costs.append(sum(cost(ch, self.shifted(float(d)), phase) for ch in range(2)))
+        frac.write_delay = 0.0
+        c = np.asarray(costs)
+        k = int(np.argmin(c))
+        fitted = theta
+        if k > 0 and c[k] * (1.0 + LOOP_DELAY_TOLERANCE) < c[0]:
+            frac.write_delay = float(grid[k])
+            self.timings[:] = self.shifted(float(grid[k]))
+            for step in (0.03, 0.01):
+                self.pairs(theta, b, phase, step * self.period, levels=2)
+                fitted, b = refit(theta, self.timings, phase)
+        near = grid[c <= c.min() * (1.0 + LOOP_DELAY_TOLERANCE)]
+        h = 0.5 * (grid[1] - grid[0])
+        return fitted, (max(0.0, float(near.min()) - h), float(near.max()) + h), (grid, c)
+
+
+def search_timings(frac: OpenFractions, timings: Sequence[Timing],
+                   onsets: Sequence[Onset | None], theta: np.ndarray, b: np.ndarray,
+                   cost_for: CostFor, refit: Refit) -> TimingSearch:
+    """Search the valves' timings, the carrier phase and a loop delay on a chamber fit.
+
+    Timings first for fixed b at phase 0 (a carrier started with the log): a coarse grid per
+    valve, then :func:`coordinate_search` of each chamber's two valves; then C and b for those
+    timings (``refit``); then the phase (:func:`phase_search`), searched with these timings
+    (the search sees the phase far better with timings near the truth than with the curve's);
+    then finer timings, each step refitted.
+
+    Last, a loop delay: every duty acting ``d`` after its sample (an IO delay). A common shift
+    of the valves' own delays explains a loop delay where the duties change every sample (a
+    closed loop), but not where they are steady for whole PWM periods (the valve tests), since
+    the carrier, not the write, times the pulses there. So a log with both shows it, and a
+    closed-loop log alone leaves it in the valves' delays (its cost is flat or rises with d).
+    ``d`` is scanned over [0, Ts] (:data:`LOOP_DELAY_POINTS`) with the timings held; where a
+    delay beats none by more than :data:`LOOP_DELAY_TOLERANCE`, the timings are searched again
+    with it, with the costs' held terms and each refit's start the parameters before the
+    scan. The range holds every scanned delay within that tolerance of the best, widened by
+    half a grid step.
+
+    Where a valve's step onset holds the sum of its opening delay and the loop delay, its
+    opening delay is searched within :func:`opening_bounds`, and a candidate ``d`` takes ``d``
+    off that valve's opening and closing delays: edges timed by a write (the full-opening
+    steps) keep their times, pulses timed by the carrier (steady duties) move ``d`` earlier.
+    On an identification run the costs stay flat all the same, since the carrier's phase is
+    searched too (docs/identification.md, "The loop delay").
+
+    Parameters
+    ----------
+    frac : OpenFractions
+        The log's openings per sample; its ``write_delay`` is left at the loop delay found.
+    timings : sequence of 4 Timing
+        Starting timings (those of the averaged model's PWM curves).
+    onsets : sequence of 4 (Onset or None)
+        Per valve, its step onset where the logs show one.
+    theta, b : ndarray
+        The chamber fit's starting parameters and its critical pressure ratios of the four
+        valves.
+    cost_for : callable
+        ``cost_for(held, b)``: the chamber cost (:data:`CostFor`).
+    refit : callable
+        ``refit(theta, timings, phase)``: the chamber fit's refit (:data:`Refit`).
+
+    Returns
+    -------
+    TimingSearch
+    """
+    period = 1.0 / frac.rig.pwm_hz
+    s = _Search(frac, timings, onsets, cost_for, period)
+    s.coarse(theta, b)
+    s.pairs(theta, b, 0.0, 0.1 * period, levels=3)
+    theta, b = refit(theta, s.timings, 0.0)
+    cost = cost_for(theta, b)
+    phase, _, phase_costs = phase_search(
+        lambda ph: sum(cost(ch, s.timings, ph) for ch in range(2)), period)
+    if phase != 0.0:
+        s.pairs(theta, b, phase, 0.1 * period, levels=3)
+    for step in (0.03, 0.01):
+        s.pairs(theta, b, phase, step * period, levels=2)
+        theta, b = refit(theta, s.timings, phase)
+    theta, span, scan = s.loop_delay(theta, b, phase, refit)
+    return TimingSearch(timings=tuple(s.timings), phase=phase, theta=theta,
+                        phase_costs=phase_costs, loop_delay=frac.write_delay,
+                        loop_delay_range=span, loop_delay_costs=scan)
+
+
+__all__ = ["LOOP_DELAY_POINTS", "LOOP_DELAY_TOLERANCE", "MAX_DELAY_PERIODS", "ONSET_MARGIN",
+           "PHASE_TOLERANCE", "CostFor", "OpenFractions", "Refit", "Timing", "TimingCost",
+           "TimingSearch", "coordinate_search", "opening_bounds", "phase_search",
+           "search_timings", "timing_bounds"]

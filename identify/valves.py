@@ -51,7 +51,9 @@ from .dataset import Dataset, IdentificationError
 from .valve_flows import A_IN, A_OUT, B_IN, B_OUT, LEAK, PortFlows
 from .valve_onsets import Onset, step_onsets
 from .valve_residuals import chamber_window_residuals, knot_window_sums
-from .valve_timing import OpenFractions, Timing, coordinate_search, phase_search, timing_bounds
+from .valve_timing import LOOP_DELAY_TOLERANCE as LOOP_DELAY_TOLERANCE  # re-exported
+from .valve_timing import ONSET_MARGIN as ONSET_MARGIN  # re-exported
+from .valve_timing import OpenFractions, Timing, TimingCost, search_timings, timing_bounds
 
 try:  # scipy's own step rules of jac='2-point' (private: without them, least_squares' default)
     from scipy.optimize._numdiff import _adjust_scheme_to_bounds, _compute_absolute_step
@@ -67,13 +69,6 @@ _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
 B_PRIOR, B_PRIOR_SD = 0.25, 0.1
 #: Duty below which a sample does not count as "the valve was commanded open".
 _OPEN_DUTY = 1e-6
-#: Loop delays scanned, evenly over [0, Ts] (0.5 ms apart at Ts = 4 ms).
-LOOP_DELAY_POINTS = 9
-#: Relative cost advantage a loop delay needs over none, and the tolerance of its range.
-LOOP_DELAY_TOLERANCE = 0.05
-#: Slack around a valve's step-onset range when it bounds the opening delay [s] (the onset grid
-#: step, and the carrier-timed opening of the averaged model, are coarser than the search).
-ONSET_MARGIN = 2.5e-4
 
 
 @contextlib.contextmanager
@@ -641,7 +636,6 @@ class ValveIdentifier(Identifier):
         #: None without the timing stage
         self.loop_delay_: float | None = None
         self.loop_delay_range_: tuple[float, float] | None = None
-        self._loop_delay_span = (0.0, 0.0)
         self.ratios_ = self._ratios(curves)
         if self.timing:
             exact = self._fit_timing(data, theta, lo, hi, curves)
@@ -697,220 +691,98 @@ class ValveIdentifier(Identifier):
                     curves: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray] | None:
         """Refit C, b (and free D) with the exact opening of every valve in every sample.
 
-        The valve timings and the carrier phase are searched (:mod:`.valve_timing`), starting
-        from the switching behaviour of the PWM curves just fitted. Adopted when its residual
-        (the windows weighted as for the averaged model, which favours the clean full-duty and
-        steady windows where they exist) is below the averaged model's; then returns the final
-        least-squares solution, the PWM curves of the timings found and the open fractions per
-        sample, else None.
+        The valve timings, the carrier phase and a loop delay are searched
+        (:func:`~.valve_timing.search_timings`), starting from the switching behaviour of the
+        PWM curves just fitted, each valve's opening delay within its step onset's range where
+        the fast logs show one (``onsets_``). Adopted when its residual (the windows weighted
+        as for the averaged model, which favours the clean full-duty and steady windows where
+        they exist) is below the averaged model's; then returns the final least-squares
+        solution, the PWM curves of the timings found and the open fractions per sample, else
+        None.
         """
-        from .valve_timing import TimingCost
-
         period = 1.0 / data.rig.pwm_hz
         wt = self._wt
         base = self._least_squares(theta, lo, hi, self._ratios(curves), wt)
         rss_avg = float(np.sum(base.fun**2))
         frac = OpenFractions(data.rig, data.u, data.Ts)
-        timings = []
+        start = []
         for i in range(4):
             sw = curve_switching(self.knots_, curves[i], period)
-            timings.append(Timing(sw["delay_on"], sw["delay_off"], sw["min_pulse"]))
+            start.append(Timing(sw["delay_on"], sw["delay_off"], sw["min_pulse"]))
+        if self._fast:
+            self._find_onsets(theta, timing_bounds(period)[1])
         leak = theta[8] * _LEAK_UNIT
         free_D = [hi[9 + ch] - lo[9 + ch] > 1e-3 for ch in range(2)]
 
-        def cost_for(b: np.ndarray) -> Callable[[int, Sequence[Timing], float], float]:
-            """Chamber cost for fixed b: C (and a free D) by linear least squares, since the
-            window sums are linear in them (:class:`.valve_timing.TimingCost`: each valve
-            switched alone, its window sums kept, repeated candidates looked up)."""
-            unit = self._flows(np.ones(4), b)
-            L = self._flow(LEAK, leak, 0.0) if leak > 0 else 0.0
-            gains, targets, extra = [], [], []
-            for ch, (V, vol, sgn) in enumerate(((self._Va, self._vol_a, -1.0),
-                                                (self._Vb, self._vol_b, 1.0))):
-                g = self._Ts * self._nRT / V
-                known = vol + g * sgn * L
-                cols = []
-                if free_D[ch]:
-                    cols.append(self._window_sum(np.full_like(vol, self._Ts), ch) * wt[ch])
-                else:  # theta is not refitted while a cost is in use
-                    known = known + self._Ts * theta[9 + ch] * _D_UNIT
-                gains.append(g)
-                targets.append((self._dp[ch] - self._window_sum(known, ch)) * wt[ch])
-                extra.append(cols)
-            return TimingCost(frac, list(zip(self._k0, self._k1, strict=True)), gains, unit,
-                              targets, wt, extra)
+        def cost_for(held: np.ndarray, b: np.ndarray) -> TimingCost:
+            return self._timing_cost(frac, held, b, leak, free_D)
 
-        t_lo, t_hi = timing_bounds(period)
-        if self._fast:
-            self.onsets_ = step_onsets(self._fast, theta[0:8:2] * _C_UNIT, theta[1:8:2], t_hi)
-            seen = [f"{VALVES[i]} {on.delay * 1e3:.2f} ms ({on.low * 1e3:.2f}-"
-                    f"{on.high * 1e3:.2f}, {on.edges} edges)"
-                    for i, on in enumerate(self.onsets_) if on is not None]
-            if seen:
-                self.notes_.append(
-                    f"valves: the chamber pressure follows a full-opening command after "
-                    f"{'; '.join(seen)}: the loop delay plus the valve's opening delay, "
-                    f"armature and line lags and the transmitter's lag; the timing search "
-                    f"keeps each valve's opening delay plus the loop delay in that range")
+        def refit(x: np.ndarray, timings: Sequence[Timing], phase: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+            x = self._least_squares(x, lo, hi, frac(timings, phase)[:-1], wt).x
+            return x, x[1:8:2].copy()
 
-        def on_bounds(i: int) -> tuple[float, float]:
-            """Range of valve i's opening delay: its onset's less the loop delay."""
-            on = self.onsets_[i]
-            if on is None:
-                return t_lo, t_hi
-            w = frac.write_delay
-            hi_on = min(t_hi, max(t_lo, on.high + ONSET_MARGIN - w))
-            return min(hi_on, max(t_lo, on.low - ONSET_MARGIN - w)), hi_on
-
-        def search(b: np.ndarray, phase: float, step: float, levels: int) -> None:
-            """Coordinate search of each chamber's two valves over (delay_on, delay_off -
-            delay_on, min_pulse): the first moves both delays together, along the valley where
-            the pulse widths stay and only their timing changes."""
-            chamber_cost = cost_for(b)
-
-            def unpack(x: np.ndarray, j: int) -> Timing:
-                on = x[3 * j]
-                return Timing(on, max(0.0, on + x[3 * j + 1]), min(x[3 * j + 2], on))
-
-            for ch in range(2):
-                pair = (2 * ch, 2 * ch + 1)
-
-                def cost(x: np.ndarray, ch: int = ch, pair: tuple[int, int] = pair) -> float:
-                    tms = list(timings)
-                    for j, i in enumerate(pair):
-                        tms[i] = unpack(x, j)
-                    return chamber_cost(ch, tms, phase)
-
-                x0 = np.array([v for i in pair for v in (
-                    timings[i].delay_on, timings[i].delay_off - timings[i].delay_on,
-                    timings[i].min_pulse)])
-                lo_x = np.tile([t_lo, -t_hi, t_lo], 2)
-                hi_x = np.tile([t_hi, t_hi, t_hi], 2)
-                for j, i in enumerate(pair):
-                    lo_x[3 * j], hi_x[3 * j] = on_bounds(i)
-                x0 = np.clip(x0, lo_x, hi_x)
-                x, _ = coordinate_search(cost, x0, lo_x, hi_x, np.full(6, step), levels=levels)
-                for j, i in enumerate(pair):
-                    timings[i] = unpack(x, j)
-
-        def refit(phase: float) -> np.ndarray:
-            sol = self._least_squares(theta, lo, hi, frac(timings, phase)[:-1], wt)
-            return sol.x
-
-        # timings for fixed b at phase 0 (a carrier started with the log), then C and b for
-        # those timings; then the phase, searched with these timings (the search sees the phase
-        # far better with timings near the truth than with the curve's); then finer timings
-        b = theta[1:8:2].copy()
-        # a coarse grid of (opening delay, pulse lengthening) per valve first, the others held:
-        # the curve's values are a poor start where its duties were not steady
-        cost = cost_for(b)
-        for i in range(4):
-            t = timings[i]
-            on_lo, on_hi = on_bounds(i)
-            if self.onsets_[i] is not None:
-                on0 = float(np.clip(t.delay_on, on_lo, on_hi))
-                t = Timing(on0, max(0.0, t.delay_off + on0 - t.delay_on), min(t.min_pulse, on0))
-                timings[i] = t
-            best = (cost(i // 2, timings, 0.0), t)
-            grid_on = (np.linspace(on_lo, on_hi, 9) if self.onsets_[i] is not None
-                       else np.linspace(t_lo, 0.8 * t_hi, 9))
-            for on in grid_on:
-                for dl in np.linspace(-0.3 * t_hi, 0.5 * t_hi, 9):
-                    cand = Timing(on, max(0.0, on + dl), min(t.min_pulse, on))
-                    c = cost(i // 2, [*timings[:i], cand, *timings[i + 1:]], 0.0)
-                    if c < best[0]:
-                        best = (c, cand)
-            timings[i] = best[1]
-        search(b, 0.0, 0.1 * period, levels=3)
-        theta = refit(0.0)
-        b = theta[1:8:2].copy()
-        cost = cost_for(b)
-        phase, _, self._phase_costs = phase_search(
-            lambda ph: sum(cost(ch, timings, ph) for ch in range(2)), period)
-        if phase != 0.0:
-            search(b, phase, 0.1 * period, levels=3)
-        for step in (0.03, 0.01):
-            search(b, phase, step * period, levels=2)
-            theta = refit(phase)
-            b = theta[1:8:2].copy()
-        theta, b = self._fit_loop_delay(frac, cost_for, search, refit, timings, phase, b, theta,
-                                        data.Ts, period, on_bounds)
-        ratios = frac(timings, phase)[:-1]
-        sol = self._least_squares(theta, lo, hi, ratios, wt)
+        found = search_timings(frac, start, self.onsets_, theta, theta[1:8:2].copy(), cost_for,
+                               refit)
+        self._phase_costs = found.phase_costs
+        self.loop_delay_costs_ = found.loop_delay_costs
+        ratios = frac(found.timings, found.phase)[:-1]
+        sol = self._least_squares(found.theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
         self.timing_rss_ = (rss, rss_avg)
-        self.timing_tried_ = (tuple(timings), phase)
+        self.timing_tried_ = (found.timings, found.phase)
         if not rss < rss_avg:
             self.notes_.append(
                 f"valves: the exact valve opening per sample (timings searched) fits the "
                 f"chamber pressures no better than the averaged PWM curve (residual "
                 f"{rss:.3g} vs {rss_avg:.3g} kPa²); the averaged model is kept")
             return None
-        self.timing_ = tuple(timings)
-        self.phase_ = phase
-        self.loop_delay_ = frac.write_delay
-        self.loop_delay_range_ = self._loop_delay_span
+        self.timing_ = found.timings
+        self.phase_ = found.phase
+        self.loop_delay_ = found.loop_delay
+        self.loop_delay_range_ = found.loop_delay_range
         new_curves = np.array([effective_open_fraction(self.knots_, period, t.delay_on,
                                                        t.delay_off, t.min_pulse)
-                               for t in timings])
+                               for t in found.timings])
         return sol, new_curves, ratios
 
-    def _fit_loop_delay(self, frac: OpenFractions, cost_for: Callable[..., Any],
-                        search: Callable[..., None], refit: Callable[[float], np.ndarray],
-                        timings: list[Timing], phase: float, b: np.ndarray, theta: np.ndarray,
-                        Ts: float, period: float,
-                        on_bounds: Callable[[int], tuple[float, float]],
-                        ) -> tuple[np.ndarray, np.ndarray]:
-        """Search a loop delay: every duty acting ``d`` after its sample (an IO delay).
+    def _find_onsets(self, theta: np.ndarray, max_delay: float) -> None:
+        """``onsets_`` from the fast logs at the averaged model's C and b, and a note."""
+        self.onsets_ = step_onsets(self._fast, theta[0:8:2] * _C_UNIT, theta[1:8:2], max_delay)
+        seen = [f"{VALVES[i]} {on.delay * 1e3:.2f} ms ({on.low * 1e3:.2f}-"
+                f"{on.high * 1e3:.2f}, {on.edges} edges)"
+                for i, on in enumerate(self.onsets_) if on is not None]
+        if seen:
+            self.notes_.append(
+                f"valves: the chamber pressure follows a full-opening command after "
+                f"{'; '.join(seen)}: the loop delay plus the valve's opening delay, "
+                f"armature and line lags and the transmitter's lag; the timing search "
+                f"keeps each valve's opening delay plus the loop delay in that range")
 
-        A common shift of the valves' own delays explains a loop delay where the duties change
-        every sample (a closed loop), but not where they are steady for whole PWM periods (the
-        valve tests), since the carrier, not the write, times the pulses there. So a log with
-        both shows it, and a closed-loop log alone leaves it in the valves' delays (its cost is
-        flat or rises with d). ``d`` is scanned over [0, Ts] with the timings held; where a
-        delay beats none by more than :data:`LOOP_DELAY_TOLERANCE`, the timings are searched
-        again with it. The range holds every scanned delay within that tolerance of the best,
-        widened by half a grid step (``loop_delay_range_``). Returns the refitted theta and b.
-
-        Where a valve's step onset (``onsets_``) holds the sum of its opening delay and the loop
-        delay, a candidate ``d`` takes ``d`` off that valve's opening and closing delays (the
-        opening within the onset's range less ``d``, ``on_bounds``): edges timed by a write
-        (the full-opening steps) keep their times, pulses timed by the carrier (steady duties)
-        move ``d`` earlier. On an identification run the costs stay flat all the same, since
-        the carrier's phase is searched too (docs/identification.md, "The loop delay").
-        """
-        cost = cost_for(b)
-        grid = np.linspace(0.0, Ts, LOOP_DELAY_POINTS)
-
-        def shifted(d: float) -> list[Timing]:
-            """The timings with ``d`` taken off the opening delays an onset holds."""
-            out = list(timings)
-            for i, tm in enumerate(timings):
-                if self.onsets_[i] is None:
-                    continue
-                on = float(np.clip(tm.delay_on - d, *on_bounds(i)))
-                out[i] = Timing(on, max(0.0, tm.delay_off - d), min(tm.min_pulse, on))
-            return out
-
-        costs = []
-        for d in grid:
-            frac.write_delay = float(d)
-            costs.append(sum(cost(ch, shifted(float(d)), phase) for ch in range(2)))
-        frac.write_delay = 0.0
-        c = np.asarray(costs)
-        self.loop_delay_costs_ = (grid, c)
-        k = int(np.argmin(c))
-        if k > 0 and c[k] * (1.0 + LOOP_DELAY_TOLERANCE) < c[0]:
-            frac.write_delay = float(grid[k])
-            timings[:] = shifted(float(grid[k]))
-            for step in (0.03, 0.01):
-                search(b, phase, step * period, levels=2)
-                theta = refit(phase)
-                b = theta[1:8:2].copy()
-        near = grid[c <= c.min() * (1.0 + LOOP_DELAY_TOLERANCE)]
-        h = 0.5 * (grid[1] - grid[0])
-        self._loop_delay_span = (max(0.0, float(near.min()) - h), float(near.max()) + h)
-        return theta, b
+    def _timing_cost(self, frac: OpenFractions, theta: np.ndarray, b: np.ndarray, leak: float,
+                     free_D: Sequence[bool]) -> TimingCost:
+        """The timing search's chamber cost for fixed b: C (and a free D) by linear least
+        squares, since the window sums are linear in them (:class:`.valve_timing.TimingCost`:
+        each valve switched alone, its window sums kept, repeated candidates looked up). The
+        leak [m^3/(s Pa)] and, where not ``free_D``, D from ``theta`` enter as known terms."""
+        wt = self._wt
+        unit = self._flows(np.ones(4), b)
+        L = self._flow(LEAK, leak, 0.0) if leak > 0 else 0.0
+        gains, targets, extra = [], [], []
+        for ch, (V, vol, sgn) in enumerate(((self._Va, self._vol_a, -1.0),
+                                            (self._Vb, self._vol_b, 1.0))):
+            g = self._Ts * self._nRT / V
+            known = vol + g * sgn * L
+            cols = []
+            if free_D[ch]:
+                cols.append(self._window_sum(np.full_like(vol, self._Ts), ch) * wt[ch])
+            else:
+                known = known + self._Ts * theta[9 + ch] * _D_UNIT
+            gains.append(g)
+            targets.append((self._dp[ch] - self._window_sum(known, ch)) * wt[ch])
+            extra.append(cols)
+        return TimingCost(frac, list(zip(self._k0, self._k1, strict=True)), gains, unit,
+                          targets, wt, extra)
 
     def window_increments(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per chamber: the measured and the modelled pressure increments over the fit's
