@@ -17,18 +17,13 @@ and fleet plants 0-2 (benchmarks/fleet.py). docs/tuning.md, "Dead-zone rounding"
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
+import fleet
 import numpy as np
 
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.sim.closed_loop import simulate_scenario
 from pneutune.control.sim.scenarios import SCENARIOS
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import fleet
 
 SCORED = fleet.SCORED
 

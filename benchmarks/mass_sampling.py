@@ -4,8 +4,9 @@
 pressure force (:class:`pneutune.identify.mass.LagMassIdentifier`). The force between samples
 is interpolated, so the logging period matters. For each period this script simulates the
 identification run (control period 4 ms, the same protocol) on the default plant and on the
-four plants of tests/test_identify.py, runs the whole of ``identify`` and prints the mass, its
-interval and the error against the plant's.
+four plant variants that tests/test_identify.py recovers
+(:data:`pneutune.control.sim.plant_variants.PLANT_VARIANTS`), runs the whole of ``identify``
+and prints the mass, its interval and the error against the plant's.
 
     .venv/bin/python benchmarks/mass_sampling.py              # about 10 min on 2 cores
     .venv/bin/python benchmarks/mass_sampling.py --quick      # default plant only, 2 seeds
@@ -16,24 +17,20 @@ The figures go into docs/identifiability.md.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.rig.identification_run import simulate_identification
+from pneutune.control.sim.plant_variants import PLANT_VARIANTS, variant_plant
 from pneutune.identify.pipeline import identify
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def _plants(quick: bool) -> dict[str, PlantConfig]:
     plants = {"default": PlantConfig()}
     if not quick:
-        from test_identify import VARIANTS
-
-        plants.update({k: PlantConfig().with_updates(v) for k, v in VARIANTS.items()})
+        plants.update({name: variant_plant(name) for name in PLANT_VARIANTS})
     return plants
 
 

@@ -1,9 +1,11 @@
 """Another simulator of the same physics: deploy -> identify -> tune -> deploy over the pipe.
 
 What a commissioning engineer does on a rig nobody modelled for pneutune, with the rig played by
-``benchmarks/other_sim_driver.py``: a simulator of the paper's Sec. 2 written apart from
-pneutune's (LuGre friction, valves that open along a ramp, fixed-step RK4), reached only through
-the driver protocol ``pneutune.rig/1`` (``deploy --rig exec:``). For each plant of ``PLANTS``:
+``tests/drivers/other_sim_driver.py``: a simulator of the paper's Sec. 2 written apart from
+pneutune's (LuGre friction, valves that open along a ramp, fixed-step RK4), run as a program and
+reached only through the driver protocol ``pneutune.rig/1`` (``deploy --rig exec:``); the truth
+the identified model is compared with is the driver's own (``--print-plant``). For each plant of
+``PLANTS``:
 
 1. ``deploy data/controller-paper.yaml --scenario all`` on the driver: the paper's gains, scored,
    and the closed-loop logs (``--id-scenario``'s is the one identified with ``--id-log deploy``;
@@ -51,13 +53,13 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from other_sim_driver import PAYLOAD_HEAVY, load_plant_dict  # beside this script (sys.path[0])
 
 from pneutune.control.constants import VALVES
 from pneutune.control.sim.scenarios import GROUPS
 
 ROOT = Path(__file__).resolve().parents[1]
-DRIVER = ROOT / "benchmarks" / "other_sim_driver.py"
+#: The other simulator, a program the tests run too (never imported here).
+DRIVER = ROOT / "tests" / "drivers" / "other_sim_driver.py"
 PAPER = ROOT / "data" / "controller-paper.yaml"
 TABLE1: tuple[str, ...] = GROUPS["table1"]
 #: What ``--id-log`` takes: the paper's closed-loop deploy log, the identification run that
@@ -66,7 +68,8 @@ ID_LOGS: tuple[str, ...] = ("deploy", "record", "both")
 #: The sample period the identification run asks the driver for [s] (the duties still change
 #: every rig.Ts = 4 ms).
 RECORD_SAMPLE_PERIOD = 0.0005
-#: The scenario whose plant carries the payload (the driver adds it; the truth must too).
+#: The scenario whose plant carries the payload (the driver adds it, and counts it in the moving
+#: mass of its truth).
 HEAVY_SCENARIO = "sine-0.5hz-heavy"
 
 
@@ -76,7 +79,7 @@ def _valves(C: tuple[float, ...], b: tuple[float, ...], on: tuple[float, ...],
             for n, c, bb, d1, d2, mp in zip(VALVES, C, b, on, off, pulse, strict=True)}
 
 
-#: The driver's plants (its own file format, benchmarks/other_sim_driver.py): the paper's rig,
+#: The driver's plants (its own file format, tests/drivers/other_sim_driver.py): the paper's rig,
 #: a rough one (more friction, unequal and slower valves, a seal leak) and a latched one.
 PLANTS: dict[str, dict[str, Any]] = {
     "rig": {},
@@ -105,7 +108,8 @@ def _bin(name: str) -> str:
 
 
 def _run(cmd: list[str]) -> tuple[int, dict[str, Any] | None, str]:
-    """Run a pneutune command with ``--json``: (exit status, its JSON, its last stderr line)."""
+    """Run a command that prints JSON last (a pneutune command with ``--json``, the driver's
+    ``--print-plant``): (exit status, that JSON, its last stderr line)."""
     proc = subprocess.run(cmd, capture_output=True, text=True,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
     lines = proc.stdout.strip().splitlines()
@@ -154,18 +158,37 @@ def record(plant: Path, log: Path, seed: int,
                  "--seed", str(seed), "--out", str(log), "--json"])
 
 
-def truth_errors(model_path: Path, plant: dict[str, Any],
-                 payload: float = 0.0) -> dict[str, Any]:
+def driver_truth(plant: Path, scenario: str) -> tuple[int, dict[str, Any] | None, str]:
+    """The driver's truth for ``plant`` in ``scenario`` (``other_sim_driver.py --print-plant``).
+
+    Parameters
+    ----------
+    plant : Path
+        The driver's plant file.
+    scenario : str
+        The scenario (or experiment) of the identified log: the heavy sine adds its payload to
+        the moving mass.
+
+    Returns
+    -------
+    tuple
+        The driver's exit status, its truth (None when it printed none): ``plant``, the complete
+        plant in its own file format, and ``moving_mass`` [kg]; and its last stderr line.
+    """
+    return _run([sys.executable, str(DRIVER), "--plant", str(plant), "--scenario", scenario,
+                 "--print-plant"])
+
+
+def truth_errors(model_path: Path, truth: dict[str, Any]) -> dict[str, Any]:
     """Identified value against the driver's truth: relative error and whether in range.
 
     Parameters
     ----------
     model_path : Path
         The model.yaml that ``identify`` wrote.
-    plant : dict
-        The driver's plant (its own file format, any subset of its keys).
-    payload : float
-        Mass the driver added for the identified log's scenario [kg] (the heavy sine's).
+    truth : dict
+        The driver's truth for the identified log's scenario (`driver_truth`): its complete
+        ``plant`` and the ``moving_mass`` (the plant's mass, plus the heavy sine's payload).
 
     Returns
     -------
@@ -174,7 +197,7 @@ def truth_errors(model_path: Path, plant: dict[str, Any],
         ``rel`` (identified / truth - 1) and ``inside`` (whether the identified range holds the
         truth; None where the model gives no range).
     """
-    truth = load_plant_dict(plant)
+    plant = truth["plant"]
     m = yaml.safe_load(model_path.read_text())
     out: dict[str, Any] = {}
 
@@ -184,17 +207,17 @@ def truth_errors(model_path: Path, plant: dict[str, Any],
                     "inside": inside}
 
     for name in VALVES:
-        v, t = m["valves"][name], truth["valves"][name]
+        v, t = m["valves"][name], plant["valves"][name]
         one(f"{name}.C", v["C"], v["C_min"], v["C_max"], t["C"])
         one(f"{name}.b", v["b"], v["b_min"], v["b_max"], t["b"])
-    one("F_C", m["friction"]["F_C"], None, None, truth["friction"]["F_C"])
+    one("F_C", m["friction"]["F_C"], None, None, plant["friction"]["F_C"])
     th = m["theta"]
-    one("b_v", m["friction"]["b_v"], th["min"][2], th["max"][2], truth["friction"]["b_v"])
-    one("mass", m["mass"], *m["mass_range"], truth["mass"] + payload)
+    one("b_v", m["friction"]["b_v"], th["min"][2], th["max"][2], plant["friction"]["b_v"])
+    one("mass", m["mass"], *m["mass_range"], truth["moving_mass"])
     return out
 
 
-def timing_errors(model_path: Path, plant: dict[str, Any]) -> dict[str, Any]:
+def timing_errors(model_path: Path, truth: dict[str, Any]) -> dict[str, Any]:
     """Identified valve timings against the driver's: delays and minimum pulse per valve.
 
     The driver's armature starts moving ``max(delay, min_pulse)`` after a coil edge and moves
@@ -205,8 +228,8 @@ def timing_errors(model_path: Path, plant: dict[str, Any]) -> dict[str, Any]:
     ----------
     model_path : Path
         The model.yaml that ``identify`` wrote.
-    plant : dict
-        The driver's plant (its own file format, any subset of its keys).
+    truth : dict
+        The driver's truth (`driver_truth`); its complete ``plant`` gives the valves.
 
     Returns
     -------
@@ -214,11 +237,11 @@ def timing_errors(model_path: Path, plant: dict[str, Any]) -> dict[str, Any]:
         Per ``<valve>.delay_on``, ``<valve>.delay_off``, ``<valve>.min_pulse``: ``identified``,
         ``truth``, ``rel`` and ``inside`` (None: the model gives no range for them).
     """
-    truth = load_plant_dict(plant)
+    plant = truth["plant"]
     m = yaml.safe_load(model_path.read_text())
     out: dict[str, Any] = {}
     for name in VALVES:
-        v, t = m["valves"][name], truth["valves"][name]
+        v, t = m["valves"][name], plant["valves"][name]
         half = 0.5 * t["ramp"]
         true = {"delay_on": max(t["delay_on"], t["min_pulse"]) + half,
                 "delay_off": max(t["delay_off"], t["min_pulse"]) + half,
@@ -291,9 +314,15 @@ def run_plant(name: str, args: argparse.Namespace) -> dict[str, Any]:
                              "identify LOG.mcap LOG.mcap (several logs of one rig)")
         return row
     model = work / "identify" / "model.yaml"
-    heavy = id_log == "deploy" and args.id_scenario == HEAVY_SCENARIO
-    row["identified"] = truth_errors(model, PLANTS[name], PAYLOAD_HEAVY if heavy else 0.0)
-    row["timing"] = timing_errors(model, PLANTS[name])
+    # the identified log's scenario: the deploy log's, else the identification run (no payload;
+    # --id-log both with the heavy sine is refused)
+    scenario = args.id_scenario if id_log == "deploy" else "identification"
+    code, truth, err = driver_truth(plant_yaml, scenario)
+    if code != 0 or truth is None:
+        row["error"] = f"driver --print-plant: exit {code}: {err}"
+        return row
+    row["identified"] = truth_errors(model, truth)
+    row["timing"] = timing_errors(model, truth)
     row["stage"] = "tune"
     t1 = time.perf_counter()
     code, tuned_json, err = _run([_bin("tune"), "--model", str(model), "--trials",

@@ -18,8 +18,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fleet import fleet_plant
 
 from pneutune.control.contracts.model import load_model

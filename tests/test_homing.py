@@ -24,8 +24,9 @@ from rig_helpers import PAPER_YAML, ROOT, SINE, TS, first_stale_time
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.logs.reader import read_run_log
+from pneutune.control.rig.deploy_simrig import DeploySimRig
+from pneutune.control.rig.exec_rig import PipeRig
 from pneutune.control.rig.faults import Fault, FaultySimRig
-from pneutune.control.rig.pipe import DeploySimRig, PipeRig, RigIOError
 from pneutune.control.rig.runtime import (
     HOME_HOLD_S,
     HOME_MOVE_S,
@@ -33,10 +34,11 @@ from pneutune.control.rig.runtime import (
     run_scenario,
     sim_rig_for,
 )
+from pneutune.control.rig.wire import RigIOError
 from pneutune.control.sim.closed_loop import scenario_plant
 from pneutune.control.sim.scenarios import SCENARIOS, move_and_hold
 
-DRIVER = ROOT / "benchmarks" / "other_sim_driver.py"
+DRIVER = ROOT / "tests" / "drivers" / "other_sim_driver.py"
 #: x_r(0) of the sines on the paper's rig: mid-stroke [m].
 MID = 0.0235
 

@@ -20,6 +20,7 @@ from pneutune.control.contracts.model import load_model, save_model
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.physics.friction import smooth_sign_array as smooth_sign
 from pneutune.control.rig.identification_run import DEFAULT_DUTIES, simulate_identification
+from pneutune.control.sim.plant_variants import PLANT_VARIANTS as VARIANTS
 from pneutune.identify.pipeline import identify
 
 VALVE_NAMES = list(VALVES)
@@ -29,37 +30,6 @@ def _valves(C_scale, b, d_on, d_off, min_pulse):
     return {name: {"C": 8.373e-9 * c, "b": bb, "delay_on": d_on, "delay_off": d_off,
                    "min_pulse": min_pulse}
             for name, c, bb in zip(VALVE_NAMES, C_scale, b, strict=True)}
-
-
-#: Four plants that between them vary friction ±40 %, C ±25 % per valve, b, the delays, mass
-#: and payload, a small seal leak, the constant disturbance terms and the sensor noise.
-VARIANTS = {
-    "stiff-friction-heavy": {
-        "friction": {"F_S": 105.0, "F_C": 70.0, "b_v": 4900.0, "v_s": 0.004},
-        "valves": _valves([1.25, 0.8, 1.1, 0.9], [0.25] * 4, 2.5e-3, 3.5e-3, 2.0e-3),
-        "payload": 1.0,
-    },
-    "light-friction-leaky": {
-        "friction": {"F_S": 45.0, "F_C": 30.0, "b_v": 2100.0, "v_s": 0.006},
-        "valves": _valves([0.8, 1.2, 0.95, 1.15], [0.15, 0.3, 0.2, 0.15], 1.5e-3, 2.0e-3,
-                          1.0e-3),
-        "mass": 0.8, "leak": {"C": 1.0e-11},
-        "sensors": {"x_noise": 1.0e-5, "p_noise": 600.0},
-    },
-    # friction -40 % on both Coulomb and viscous terms and a heavier piston: slow ramps
-    # stick-slip. Fitted jointly with the Stribeck terms, F_C came out 15-17 % low here.
-    "low-damping-light-coulomb": {
-        "friction": {"F_S": 45.0, "F_C": 30.0, "b_v": 2100.0},
-        "mass": 1.5,
-    },
-    "disturbed-latched": {
-        "rig": {"pwm_update": "latched"},
-        "valves": _valves([1.1, 1.2, 0.75, 0.85], [0.35, 0.35, 0.22, 0.22], 2.0e-3, 3.0e-3,
-                          1.5e-3),
-        "payload": 1.136,
-        "disturbance": {"F_n": 5.0, "D_a": 150.0, "D_b": -100.0},
-    },
-}
 
 
 @pytest.fixture(scope="module", params=list(VARIANTS))

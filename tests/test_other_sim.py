@@ -1,13 +1,14 @@
-"""The other simulator (benchmarks/other_sim_driver.py) and the loop over it (other_sim.py).
+"""The other simulator (tests/drivers/other_sim_driver.py) and the loop over it
+(benchmarks/other_sim.py).
 
 The driver is a second implementation of the paper's Sec. 2, reached only through the pipe
 protocol: these tests keep it a conforming driver, check two facts of its physics that need no
-pneutune code, and (slow) run the commissioning loop deploy -> identify -> tune -> deploy on it.
+pneutune code, and (slow) run the commissioning loop deploy -> identify -> tune -> deploy on it
+with the benchmark, as a program.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shlex
@@ -16,19 +17,17 @@ import sys
 from pathlib import Path
 
 import pytest
+from drivers import other_sim_driver as osd
 
 from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.conformance import check_driver
 
 ROOT = Path(__file__).resolve().parents[1]
-DRIVER = ROOT / "benchmarks" / "other_sim_driver.py"
+DRIVER = Path(osd.__file__).resolve()
+BENCHMARK = ROOT / "benchmarks" / "other_sim.py"
 PAPER = ROOT / "data" / "controller-paper.yaml"
 DEPLOY = str(Path(sys.executable).with_name("deploy"))
 RECORD = str(Path(sys.executable).with_name("record"))
-
-sys.path.insert(0, str(ROOT / "benchmarks"))
-import other_sim  # noqa: E402
-import other_sim_driver as osd  # noqa: E402
 
 
 def test_driver_passes_every_conformance_check() -> None:
@@ -122,6 +121,24 @@ def test_record_runs_the_identification_protocol_on_the_other_simulator(tmp_path
     assert t[1] - t[0] == pytest.approx(0.0005)
 
 
+def test_print_plant_gives_the_complete_plant_and_the_moving_mass(tmp_path: Path) -> None:
+    """--print-plant (the benchmark's truth): the plant file over the defaults, and the heavy
+    sine's payload in the moving mass only."""
+    plant = tmp_path / "plant.yaml"
+    plant.write_text("mass: 1.4\nfriction: {F_C: 75.0}\n")
+    truth = {}
+    for scenario in ("sine-0.5hz", "sine-0.5hz-heavy", "identification"):
+        proc = subprocess.run([sys.executable, str(DRIVER), "--plant", str(plant), "--scenario",
+                               scenario, "--print-plant"], capture_output=True, text=True,
+                              timeout=30)
+        assert proc.returncode == 0, proc.stderr
+        truth[scenario] = json.loads(proc.stdout)
+    assert truth["sine-0.5hz"]["plant"] == osd.load_plant_dict({"mass": 1.4,
+                                                                "friction": {"F_C": 75.0}})
+    assert truth["sine-0.5hz"]["moving_mass"] == truth["identification"]["moving_mass"] == 1.4
+    assert truth["sine-0.5hz-heavy"]["moving_mass"] == pytest.approx(1.4 + osd.PAYLOAD_HEAVY)
+
+
 def test_plant_file_with_a_misspelt_key_is_refused(tmp_path: Path) -> None:
     bad = tmp_path / "plant.yaml"
     bad.write_text("friction: {F_c: 60.0}\n")
@@ -148,9 +165,12 @@ def test_deploy_runs_the_papers_controller_on_the_other_simulator(tmp_path: Path
 def test_the_commissioning_loop_closes_on_the_other_simulator(tmp_path: Path) -> None:
     """deploy (paper) -> identify -> tune (40 trials) -> deploy (tuned) on the rough plant:
     every command exits 0, and the tuned controller beats the paper's gains on the 0.5 Hz sine
-    (at 200 trials, benchmarks/other_sim.py: 0.26 against 0.69 mm)."""
-    ns = argparse.Namespace(out=str(tmp_path), seed=1, trials=40, id_scenario="sine-0.5hz",
-                            id_log="deploy")
-    row = other_sim.run_plant("rough", ns)
+    (at 200 trials, benchmarks/other_sim.py: 0.26 against 0.69 mm). The benchmark runs as a
+    program; its row is read from its JSON."""
+    proc = subprocess.run([sys.executable, str(BENCHMARK), "--plants", "rough", "--trials", "40",
+                           "--seed", "1", "--out", str(tmp_path), "--id-scenario", "sine-0.5hz",
+                           "--id-log", "deploy"], capture_output=True, text=True, timeout=3600)
+    assert proc.returncode in (0, 1), proc.stderr[-2000:]
+    [row] = json.loads((tmp_path / "other_sim.json").read_text())
     assert row["stage"] == "done", row.get("error")
     assert row["tuned"]["sine-0.5hz"] < row["paper"]["sine-0.5hz"], row

@@ -1,14 +1,20 @@
 """An independent simulator of the servo-pneumatic rig, speaking ``pneutune.rig/1`` on a pipe.
 
-    .venv/bin/python benchmarks/other_sim_driver.py [--plant PLANT.yaml] --scenario NAME --seed N
-        [--x0 X] [--sample-period S]
+    .venv/bin/python tests/drivers/other_sim_driver.py [--plant PLANT.yaml] --scenario NAME
+        --seed N [--x0 X] [--sample-period S]
+    .venv/bin/python tests/drivers/other_sim_driver.py [--plant PLANT.yaml] --scenario NAME
+        --print-plant
 
 A second simulator of the physics of the paper's Sec. 2 (Qian et al., 2014), written apart from
 pneutune's own, so that ``deploy --rig exec:`` -> ``identify`` -> ``tune`` can be checked against
-a plant that pneutune did not write. It reads requests on stdin and writes replies on stdout,
-binary and little-endian, as docs/deploy.md ("The pipe protocol") specifies: ``H`` hello, ``R``
-read, ``W`` write, ``A`` advance, ``T`` truth, ``C`` close; an ``E`` reply (bad duty, unknown
-opcode) closes the valves and exits 1; end of input closes the valves and exits 0.
+a plant that pneutune did not write. It imports nothing of pneutune; the tests and
+``benchmarks/other_sim.py`` run it as a program. It reads requests on stdin and writes replies on
+stdout, binary and little-endian, as docs/deploy.md ("The pipe protocol") specifies: ``H``
+hello, ``R`` read, ``W`` write, ``A`` advance, ``T`` truth, ``C`` close; an ``E`` reply (bad
+duty, unknown opcode) closes the valves and exits 1; end of input closes the valves and exits 0.
+``--print-plant`` serves nothing: it prints the truth a client compares an identified model with,
+as one line of JSON (``{"plant": <the complete plant>, "moving_mass": <kg, payload included>}``),
+and exits 0.
 
 The model (SI units; valve order a_in, a_out, b_in, b_out)
 ------------------------------------------------------------
@@ -196,6 +202,24 @@ def substeps_for(plant: dict[str, Any], sample_period: float | None) -> int:
         return n
     ratio = n * float(sample_period) / float(plant["Ts"])
     return max(1, math.ceil(ratio - 1e-9))
+
+
+def moving_mass(plant: dict[str, Any], scenario: str) -> float:
+    """The mass the piston moves in a scenario: the plant's, with the heavy sine's payload.
+
+    Parameters
+    ----------
+    plant : dict
+        A complete plant (`load_plant_dict`).
+    scenario : str
+        The scenario name; ``sine-0.5hz-heavy`` adds ``PAYLOAD_HEAVY``.
+
+    Returns
+    -------
+    float
+        The moving mass [kg].
+    """
+    return float(plant["mass"]) + (PAYLOAD_HEAVY if scenario == "sine-0.5hz-heavy" else 0.0)
 
 
 class PlantError(ValueError):
@@ -515,7 +539,7 @@ class CylinderSim:
                              f"= {self.control_Ts!r} s into whole samples")
         self.Ts = self.control_Ts if sample_period is None else float(sample_period)
         self.nsub = substeps_for(plant, sample_period)
-        self.mass = plant["mass"] + (PAYLOAD_HEAVY if scenario == "sine-0.5hz-heavy" else 0.0)
+        self.mass = moving_mass(plant, scenario)
         self.disturbance = scenario == "disturbance-0.5hz"
         latched = plant["pwm_update"] == "latched"
         self.valves = [Valve(plant["valves"][n], plant["pwm_hz"], latched) for n in VALVE_NAMES]
@@ -802,6 +826,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample-period", type=float, default=None, metavar="S",
                     help="sample and tick every S seconds, dividing the plant's Ts (default Ts); "
                          "the hello's Ts is S, its rig block keeps the plant's Ts")
+    ap.add_argument("--print-plant", action="store_true",
+                    help="print the complete plant and the scenario's moving mass as JSON "
+                         "and exit, serving nothing")
     args = ap.parse_args(argv)
     if args.x0 is not None and not X_MIN <= args.x0 <= X_MAX:
         print(f"other_sim_driver: --x0 must be in [{X_MIN}, {X_MAX}]", file=sys.stderr)
@@ -811,6 +838,9 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, yaml.YAMLError, PlantError) as exc:
         print(f"other_sim_driver: bad plant {args.plant}: {exc}", file=sys.stderr)
         return 2
+    if args.print_plant:
+        print(json.dumps({"plant": plant, "moving_mass": moving_mass(plant, args.scenario)}))
+        return 0
     try:
         sim = CylinderSim(plant, args.scenario, args.seed, args.x0, args.sample_period)
     except PlantError as exc:
