@@ -34,8 +34,8 @@ Every range but θ̂3(0)'s spans one to three decades around the paper's value; 
 on a log scale. Not searched: θ_min, θ_max and θ_0 other than θ3's (from model.yaml), the rate
 limits θ̇_M and ``min_ref_speed`` (the paper's Sec. 5.1/5.3 values), ``position_feedback``
 (``measured``, docs/controller.md), ``dead_zone`` (``up`` unless ``tune --dead-zone dither``:
-fixed for a study, not searched, because dithering measured worse on every fleet plant tried,
-docs/tuning.md).
+fixed for a study, not searched, because dithering measured worse on four of five fleet
+plants, docs/notes/2026-11-26-tune-levers.md).
 """
 
 from __future__ import annotations
