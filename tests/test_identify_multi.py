@@ -24,6 +24,7 @@ from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.json_schemas import json_schema
 from pneutune.control.contracts.model import ModelConfig, SourceInfo, load_model
 from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.identification_run import simulate_identification
 from pneutune.control.sim.closed_loop import simulate_scenario
 from pneutune.control.sim.model_box import uncertainty_box
@@ -33,6 +34,7 @@ from pneutune.identify.cli import main as identify_main
 from pneutune.identify.dataset import JUNCTION_MARGIN_SAMPLES, carrier_block, load_dataset, pool
 from pneutune.identify.pipeline import identify
 from pneutune.identify.report import write_report
+from pneutune.identify.run_record import run_record
 from pneutune.tune.logcheck import check_logs, logged_controller
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -155,11 +157,11 @@ def test_source_lists_every_log_and_the_report_too(combined, deploy, tmp_path):
 
 
 def test_one_log_keeps_the_single_source_mapping_and_its_bases(alone):
-    """One log: source stays the contract's mapping and no basis names a log, as before
-    several logs were possible (`identify data/run.mcap` wrote the same model.yaml byte for
-    byte before and after, 2026-11-25)."""
+    """One log: source stays the contract's mapping (with identify's record of the run, here
+    an identification run: no closed loop) and no basis names a log."""
     data = alone.model.to_dict()
-    assert set(data["source"]) == {"log", "sha256", "duration_s"}
+    assert set(data["source"]) == {"log", "sha256", "duration_s", "run"}
+    assert data["source"]["run"]["closed_loop"] is False
     assert not any("(from " in b for b in (alone.model.basis or {}).values())
     assert alone.pool is not None and alone.pool.data is alone.data  # no pooling at all
 
@@ -303,11 +305,11 @@ def test_a_run_cut_short_takes_friction_from_another_log(cut, deploy):
     assert (r.model.basis or {})["valves.a_in.C"].endswith("(from cut.mcap)")
 
 
-def test_tune_takes_the_controller_of_the_most_recent_closed_loop_log(deploy, folder,
-                                                                       tmp_path):
+def test_tune_takes_the_controller_of_the_later_closed_loop_log(deploy, folder, tmp_path):
     """A model of the identification run and two closed-loop logs that ran different
-    controllers: the logged controller is the most recent log's and the choice is said; the
-    log check replays each closed-loop log and lists the run as not checked."""
+    controllers, each with identify's record of its run: the logged controller is the later
+    closed-loop log's in source (file dates do not count) and the choice is said; the log check
+    replays each closed-loop log and lists the run as not checked."""
     data = yaml.safe_load(PAPER.read_text(encoding="utf-8"))
     data["gains"].update(k1=100.0, k2=9000.0)
     retuned = tmp_path / "retuned.yaml"
@@ -315,17 +317,18 @@ def test_tune_takes_the_controller_of_the_most_recent_closed_loop_log(deploy, fo
     old = tmp_path / "old.mcap"
     shutil.copy(deploy, old)
     new = _deploy(tmp_path / "new.mcap", controller=retuned)
-    os.utime(old, (1.0e9, 1.0e9))
     os.utime(new, (2.0e9, 2.0e9))
-    model = model_from_plant(PLANT).to_dict()
-    model["source"] = [{"log": str(p), "sha256": sha256_file(p), "duration_s": 1.0}
-                       for p in (RUN, new, old)]
-    model = ModelConfig.model_validate(model)
+    os.utime(old, (3.0e9, 3.0e9))  # the paper's log modified last: file dates do not count
+    data = model_from_plant(PLANT).to_dict()
+    srcs = {p: {"log": str(p), "sha256": sha256_file(p), "duration_s": 1.0,
+                "run": run_record(read_run_log(p))} for p in (RUN, new, old)}
+    data["source"] = [srcs[p] for p in (RUN, old, new)]
     said: list[str] = []
-    cfg, name = logged_controller(model, notes=said.append)
+    cfg, name = logged_controller(ModelConfig.model_validate(data), notes=said.append)
     assert cfg == load_controller(retuned) and name == str(retuned)
     assert len(said) == 1 and "ran different controllers" in said[0] and str(new) in said[0]
-    os.utime(old, (3.0e9, 3.0e9))  # now the paper's log is the most recent
+    data["source"] = [srcs[p] for p in (RUN, new, old)]
+    model = ModelConfig.model_validate(data)
     cfg, name = logged_controller(model, notes=said.append)
     assert cfg == load_controller(PAPER) and name == str(PAPER)
     checks = check_logs(model, load_controller(PAPER), seed=1)

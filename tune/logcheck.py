@@ -2,12 +2,16 @@
 
 tune optimises on plants drawn from the model, so its controller is only as good as the model's
 closed loop is like the rig's. When the model came from a closed-loop log (``deploy --log``), the
-log holds one closed loop of the rig itself: a known controller (the run record's ``controller``
-and ``controller_sha256``) on a known scenario (``scenario``), with its measured tracking error.
-This module replays that controller on the model's nominal plant over the same scenario and
-length, on :data:`NOISE_SEEDS` sensor-noise seeds, and puts the model's E_p beside the log's.
-It also runs the tuned controller there, so the report reads "model: logged controller a mm,
-tuned b mm; rig: logged controller c mm".
+log holds one closed loop of the rig itself: a known controller on a known scenario, with its
+measured tracking error. identify records what of it the check needs in model.yaml, each source
+log's ``source.run`` (:class:`~pneutune.control.contracts.model.LoggedRun`): the scenario, the
+contract-4 content of the controller that ran (when identify found its file unchanged since the
+run), the closed loop's length in samples and the log's E_p and E_rms over its last three
+reference periods. This module reads only those records, never the log or the controller file:
+it replays that controller on the model's nominal plant over the same scenario and length, on
+:data:`NOISE_SEEDS` sensor-noise seeds, and puts the model's E_p beside the log's. It also runs
+the tuned controller there, so the report reads "model: logged controller a mm, tuned b mm; rig:
+logged controller c mm".
 
 Two warnings. When the rig tracked :data:`RATIO` times better or worse than every replay, the
 model is pessimistic (optimistic) about this rig's closed loop, and the tuned controller's
@@ -19,15 +23,17 @@ gains gave 0.105 mm on the rig, 0.13-0.22 mm on the model's nominal plant, and t
 controller 0.20-0.25 mm there; on the rig it lost the sines (0.24 mm). Both warnings say to
 deploy both controllers (docs/tuning.md, "The log's own closed loop").
 
-Nothing is checked, and the report says why, when the log is not at the path model.yaml names,
-has changed since identify, is not a closed-loop run of a known scenario (an identification or
-commissioning run), or its controller file is gone or changed.
+Nothing is checked, and the report says why, when model.yaml has no ``source.run`` for the log
+(run identify again to record it), the log is not a closed-loop run of a known scenario (an
+identification or commissioning run, or a homing move a fault stopped), identify recorded no
+controller for it (``controller_missing``: its file was not found, had changed since the run,
+or did not load), or it is shorter than the indices' window.
 
 A model fitted to several logs (model.yaml's ``source`` a list) is checked log by log
 (:func:`check_logs`): each closed-loop source log is replayed, the others are listed as not
 checked. The controller that ran (:func:`logged_controller`) is taken from the closed-loop
-logs; when several ran different controllers, the most recent log's (the file modified last,
-the later in ``source`` on a tie), and tune says so.
+logs' records; when several ran different controllers, the later log's in ``source`` is taken
+(the order identify was given the logs in; file dates are not looked at), and tune says so.
 """
 
 from __future__ import annotations
@@ -37,18 +43,14 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from pneutune.control.contracts.atomic import sha256_file
-from pneutune.control.contracts.controller import ControllerConfig, load_controller
+from pneutune.control.contracts.controller import ControllerConfig
 from pneutune.control.contracts.model import ModelConfig, SourceInfo
-from pneutune.control.errors import PneutuneError
-from pneutune.control.logs.reader import RunLog, read_run_log
-from pneutune.control.sim.closed_loop import compute_metrics, simulate_scenario
+from pneutune.control.sim.closed_loop import simulate_scenario
 from pneutune.control.sim.model_box import nominal_plant
-from pneutune.control.sim.scenarios import SCENARIOS
+from pneutune.control.sim.scenarios import SCENARIOS, metric_window
 
 #: The rig's E_p outside [min / RATIO, max x RATIO] of the replays' is a warning [-]. E_p is a
 #: maximum over the window and moves by up to ±50 % with the noise seed alone (README), so a
@@ -157,14 +159,6 @@ class LogCheck:
                 "warnings": self.warnings()}
 
 
-def _find(log: str, model_path: str | None) -> Path | None:
-    """The log model.yaml names: as given (from the working directory), else beside the model."""
-    cands = [Path(log)]
-    if model_path is not None and not Path(log).is_absolute():
-        cands.append(Path(model_path).resolve().parent / log)
-    return next((p for p in cands if p.is_file()), None)
-
-
 class LogChecks(tuple[LogCheck, ...]):
     """The check of every log a model came from (:func:`check_logs`), one :class:`LogCheck`
     each. With one log it reads exactly as that log's check."""
@@ -193,72 +187,43 @@ class LogChecks(tuple[LogCheck, ...]):
         return {"logs": [c.as_dict() for c in self], "warnings": self.warnings()}
 
 
-def _open_source(src: SourceInfo, model_path: str | None) -> tuple[RunLog | None, str]:
-    """A log model.yaml was identified from, or None and why not."""
-    name = src.log
-    path = _find(name, model_path)
-    if path is None:
-        return None, f"the log `{name}` is not at that path"
-    if sha256_file(path) != src.sha256:
-        return None, f"`{name}` has changed since identify read it (sha256)"
-    try:
-        return read_run_log(path), ""
-    except PneutuneError as exc:  # it was read by identify; a defect here is worth a line
-        return None, f"`{name}` cannot be read: {exc}"
+#: Why nothing is checked for a source log without ``source.run``.
+NO_RECORD = ("model.yaml has no record of this log's run (`source.run`): run identify again on "
+             "the log to record it")
 
 
-def _modified(src: SourceInfo, model_path: str | None) -> float:
-    """The modification time of a source log's file [s since the epoch] (-inf if absent)."""
-    path = _find(src.log, model_path)
-    return path.stat().st_mtime if path is not None else -math.inf
-
-
-def _run_controller(log: RunLog) -> tuple[ControllerConfig | None, str]:
-    """The controller file the log's run record names, unchanged since the run, or None and
-    why not."""
-    ctrl_name = log.run.get("controller", "")
-    ctrl_path = Path(ctrl_name) if ctrl_name else None
-    if ctrl_path is None or not ctrl_path.is_file():
-        return None, f"the controller that ran (`{ctrl_name or '?'}`) is not at that path"
-    want = log.run.get("controller_sha256")
-    if want and sha256_file(ctrl_path) != want:
-        return None, f"`{ctrl_name}` has changed since the run (sha256)"
-    try:
-        return load_controller(ctrl_path), ""
-    except PneutuneError as exc:
-        return None, f"`{ctrl_name}` does not load: {exc}"
-
-
-def _source_controller(src: SourceInfo, model_path: str | None
-                       ) -> tuple[ControllerConfig | None, str]:
-    """The controller that ran in one source log, or None and why not."""
-    log, why = _open_source(src, model_path)
-    if log is None:
-        return None, why
-    if "/control/state" not in log.topics:
+def _record_controller(src: SourceInfo) -> tuple[ControllerConfig | None, str]:
+    """The controller that ran in one source log, as identify recorded it, or None and why
+    not."""
+    run = src.run
+    if run is None:
+        return None, NO_RECORD
+    if not run.closed_loop:
         return None, "not a closed-loop run"
-    cfg, why = _run_controller(log)
-    return (cfg, log.run.get("controller", "")) if cfg is not None else (None, why)
+    if run.controller_config is None:
+        return None, f"identify recorded no controller: {run.controller_missing}"
+    return run.controller_config, run.controller or ""
 
 
 def logged_controller(model: ModelConfig, model_path: str | None = None,
                       notes: Callable[[str], None] | None = None,
                       ) -> tuple[ControllerConfig | None, str]:
     """The controller that ran in ``model``'s log (a closed-loop run that ``deploy --log``
-    wrote), as :func:`check_log` finds it; ``(None, why not)`` otherwise.
+    wrote), as identify recorded it in ``source.run``; ``(None, why not)`` otherwise.
 
     ``tune`` enqueues its parameters as a trial, so that a re-tune after a re-identification
-    starts from the controller on the rig. For a model fitted to several logs, every source log
-    is looked at: the controller comes from the closed-loop ones, and when they ran different
-    controllers, from the most recent log (its file modified last; the later in ``source`` on a
-    tie), which ``notes`` (default: stderr) is told.
+    starts from the controller on the rig. For a model fitted to several logs, every source's
+    record is looked at: the controller comes from the closed-loop ones, and when they ran
+    different controllers, from the later of them in ``source`` (file dates are not looked
+    at), which ``notes`` (default: stderr) is told. Neither the logs nor the controller files
+    are opened.
 
     Parameters
     ----------
     model : ModelConfig
-        The identified model (its ``source`` names the logs).
+        The identified model (its ``source`` holds the records).
     model_path : str, optional
-        Where model.yaml was read from (a relative log path is also tried beside it).
+        Where model.yaml was read from; not needed, as the records are in ``model``.
     notes : callable, optional
         Receives the line saying which of several different logged controllers was taken
         (default: written to stderr).
@@ -266,26 +231,28 @@ def logged_controller(model: ModelConfig, model_path: str | None = None,
     Returns
     -------
     (ControllerConfig or None, str)
-        The controller and its file name, or None and the reason.
+        The controller and its file name as the run record names it, or None and the reason.
     """
+    del model_path  # the records are in model.yaml
     sources = model.sources
     if len(sources) == 1:
-        return _source_controller(sources[0], model_path)
-    found: list[tuple[float, int, ControllerConfig, str, str]] = []
+        return _record_controller(sources[0])
+    found: list[tuple[ControllerConfig, str, str]] = []
     why: list[str] = []
-    for k, src in enumerate(sources):
-        cfg, what = _source_controller(src, model_path)
+    for src in sources:
+        cfg, what = _record_controller(src)
         if cfg is None:
             why.append(f"`{src.log}`: {what}")
         else:
-            found.append((_modified(src, model_path), k, cfg, what, src.log))
+            found.append((cfg, what, src.log))
     if not found:
         return None, "; ".join(why)
-    _, _, cfg, ctrl_name, log_name = max(found, key=lambda f: (f[0], f[1]))
-    if any(f[2] != cfg for f in found):
-        ran = ", ".join(f"`{f[3]}` in `{f[4]}`" for f in found)
-        line = (f"the model's closed-loop logs ran different controllers ({ran}); the most "
-                f"recent log's, `{ctrl_name}` in `{log_name}`, is the logged controller")
+    cfg, ctrl_name, log_name = found[-1]
+    if any(f[0] != cfg for f in found):
+        ran = ", ".join(f"`{f[1]}` in `{f[2]}`" for f in found)
+        line = (f"the model's closed-loop logs ran different controllers ({ran}); the later "
+                f"log's in model.yaml's source, `{ctrl_name}` in `{log_name}`, is the logged "
+                "controller")
         if notes is not None:
             notes(line)
         else:
@@ -296,6 +263,17 @@ def logged_controller(model: ModelConfig, model_path: str | None = None,
 def check_logs(model: ModelConfig, tuned: ControllerConfig, seed: int,
                model_path: str | None = None) -> LogChecks:
     """:func:`check_log` for every log ``model`` came from (one for a single-log model).
+
+    Parameters
+    ----------
+    model : ModelConfig
+        The identified model (its ``source`` holds the records).
+    tuned : ControllerConfig
+        The tuned controller, replayed beside each logged one.
+    seed : int
+        tune's seed.
+    model_path : str, optional
+        Where model.yaml was read from; not needed, as the records are in ``model``.
 
     Returns
     -------
@@ -309,16 +287,18 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
               model_path: str | None = None, source: SourceInfo | None = None) -> LogCheck:
     """Replay the controller of ``model``'s log on its nominal plant (module docstring).
 
+    Only ``source.run`` is read: the log and the controller file are not opened.
+
     Parameters
     ----------
     model : ModelConfig
-        The identified model (its ``source`` names the log).
+        The identified model (its ``source`` holds the log's record).
     tuned : ControllerConfig
         The tuned controller, replayed beside the logged one.
     seed : int
         tune's seed; the replays use noise seeds ``seed + NOISE_SEEDS``.
     model_path : str, optional
-        Where model.yaml was read from (a relative log path is also tried beside it).
+        Where model.yaml was read from; not needed, as the record is in ``model``.
     source : SourceInfo, optional
         The log to check: one of ``model.sources``; default the model's only log
         (:func:`check_logs` checks each of several).
@@ -332,47 +312,39 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
     ValueError
         ``source`` not given for a model of several logs.
     """
+    del model_path  # the record is in model.yaml
     if source is None:
         if len(model.sources) != 1:
             raise ValueError(f"the model came from {len(model.sources)} logs: name the one "
                              f"to check (source=...), or use check_logs")
         source = model.sources[0]
-    name = source.log
-    log, why = _open_source(source, model_path)
-    if log is None:
-        return LogCheck(name, why)
-    if "/control/state" not in log.topics or "/control/reference" not in log.topics:
+    name, run = source.log, source.run
+    if run is None:
+        return LogCheck(name, NO_RECORD)
+    if not run.closed_loop:
         return LogCheck(name, "it is not a closed-loop run (no /control/state): an "
                         "identification or commissioning run")
-    if log.run.get("homing") == "fault":
+    if run.homing_fault:
         return LogCheck(name, "it holds only a homing move that a fault stopped before the "
                         "scenario (run record `homing: fault`)")
-    scenario = SCENARIOS.get(log.run.get("scenario", ""))
+    scenario = SCENARIOS.get(run.scenario or "")
     if scenario is None:
         return LogCheck(name, f"its run record names no scenario this version knows "
-                        f"({log.run.get('scenario', 'none')!r}; `deploy --log` writes one), "
+                        f"({run.scenario or 'none'!r}; `deploy --log` writes one), "
                         "so there is no reference to replay")
-    ctrl_name = log.run.get("controller", "")
-    logged, why = _run_controller(log)
+    ctrl_name = run.controller or ""
+    logged = run.controller_config
     if logged is None:
-        return LogCheck(name, why, scenario.name, ctrl_name or None)
-    Ts = float(log.rig["Ts"])
-    if not math.isclose(Ts, model.rig.Ts) or not math.isclose(Ts, logged.rig.Ts):
-        return LogCheck(name, f"its Ts {Ts:g} s is not the model's and controller's",
+        return LogCheck(name, f"identify recorded no controller for it: "
+                        f"{run.controller_missing}", scenario.name, ctrl_name or None)
+    Ts = model.rig.Ts
+    if not math.isclose(Ts, logged.rig.Ts):
+        return LogCheck(name, f"its Ts {Ts:g} s is not the controller's ({logged.rig.Ts:g} s)",
                         scenario.name, ctrl_name)
-    ref = log.topics["/control/reference"].to_numpy(float)
-    sensors = log.topics["/rig/sensors"].to_numpy(float)
-    duties = log.topics["/rig/valves"].to_numpy(float)
-    state = log.topics["/control/state"].to_numpy(float)
-    n = min(len(ref), len(sensors), len(duties), len(state))
-    window = round(3.0 * scenario.period / Ts)
-    if n < window:
+    n = run.samples or 0
+    if run.E_p_mm is None or run.E_rms_mm is None or n < metric_window(scenario.period, Ts):
         return LogCheck(name, f"it is shorter ({n * Ts:.3g} s) than the three reference periods "
                         "of the indices", scenario.name, ctrl_name)
-    a = logged.adaptation
-    measured = compute_metrics(scenario, Ts, ref[:n], sensors[:n], duties[:n], state[:n],
-                               np.asarray(a.theta_min), np.asarray(a.theta_max),
-                               model.rig.x_min, model.rig.x_max, "ok")
     run_sc = dataclasses.replace(scenario, duration=n * Ts)
 
     def replay(ctrl: ControllerConfig) -> tuple[tuple[float, float], ...]:
@@ -384,8 +356,8 @@ def check_log(model: ModelConfig, tuned: ControllerConfig, seed: int,
         return tuple(out)
 
     return LogCheck(name, None, scenario.name, ctrl_name,
-                    (measured.E_p_mm, measured.E_rms_mm), replay(logged), replay(tuned))
+                    (run.E_p_mm, run.E_rms_mm), replay(logged), replay(tuned))
 
 
-__all__ = ["NOISE_SEEDS", "RATIO", "TUNED_RATIO", "LogCheck", "LogChecks", "check_log",
-           "check_logs", "logged_controller"]
+__all__ = ["NOISE_SEEDS", "NO_RECORD", "RATIO", "TUNED_RATIO", "LogCheck", "LogChecks",
+           "check_log", "check_logs", "logged_controller"]

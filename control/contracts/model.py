@@ -11,7 +11,11 @@ The contract's keys keep their names and meanings; pneutune adds (documented in 
   key, each a nominal value and the range tune's plant draws sample;
 * ``source`` is the contract's mapping (log, sha256, duration_s) for a model identified from one
   log, and a list of such mappings, one per log, for a model fitted to several logs of one rig
-  (``identify A.mcap B.mcap``); :attr:`ModelConfig.sources` reads either as a tuple.
+  (``identify A.mcap B.mcap``); :attr:`ModelConfig.sources` reads either as a tuple;
+* ``source.run`` (each log's): what the log's run record says of the run (:class:`LoggedRun`):
+  whether it is a closed loop, its scenario, the controller that ran with its contract-4 content
+  when identify found that file unchanged, and the log's measured tracking indices, so that tune
+  compares the model's closed loop with the rig's from model.yaml alone.
 
 θ = [M, F_n, b_v, A_f, D_an, D_bn] (the paper's order) in kg, N, N s/m, N, Pa/s, Pa/s.
 """
@@ -21,10 +25,10 @@ from __future__ import annotations
 import os
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WithJsonSchema, model_validator
 
 from pneutune.control.constants import MODEL_SCHEMA, THETA_NAMES, VALVES
-from pneutune.control.contracts.controller import PwmCurve
+from pneutune.control.contracts.controller import ControllerConfig, PwmCurve
 from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.contracts.yamlio import load_config, write_yaml
 
@@ -55,12 +59,68 @@ def _check_range(name: str, lo: float, value: float, hi: float) -> None:
                          f"got {lo} <= {value} <= {hi}")
 
 
+#: A controller.yaml document inside model.yaml: validated as contract 4, and in the exported
+#: JSON Schema an object (controller.schema.json is its schema; its keys are not repeated).
+LoggedController = Annotated[ControllerConfig, WithJsonSchema(
+    {"type": "object", "description": "A controller.yaml document (pneutune.controller/1)"})]
+
+
+class LoggedRun(_Strict):
+    """Added: what a log's run record says of the run, as identify read it.
+
+    ``controller_config`` holds the controller that ran when identify found its file unchanged
+    since the run; otherwise ``controller_missing`` says why not (exactly one of the two is
+    set). ``E_p_mm`` and ``E_rms_mm`` are the log's own tracking indices over its last three
+    reference periods.
+    """
+
+    closed_loop: bool = Field(description="The log holds /control/state and "
+                              "/control/reference (a closed loop that deploy or simulate "
+                              "logged)")
+    scenario: str | None = Field(None, description="The scenario the run record names")
+    controller: str | None = Field(None, description="The controller file the run record "
+                                   "names, as named there")
+    controller_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$",
+                                          description="The controller file's sha256 at the "
+                                          "run, as the run record gives it")
+    controller_config: LoggedController | None = Field(
+        None, description="The contract-4 content of the controller that ran (a whole "
+        "controller.yaml document, validated as one), when identify found its file (as named, "
+        "from the working directory, else beside the log) unchanged since the run")
+    controller_missing: str | None = Field(
+        None, description="Why controller_config is absent (no controller named, file "
+        "not found, changed since the run (sha256), does not load)")
+    homing_fault: bool = Field(False, description="A fault stopped the homing move "
+                               "before the scenario (run record homing: fault)")
+    samples: int | None = Field(None, ge=0, description="Closed-loop samples at the "
+                                "control rate (absent for an open-loop log)")
+    E_p_mm: float | None = Field(None, ge=0.0, description="The log's max |x - x_r| over "
+                                 "its last three reference periods [mm]; absent when the "
+                                 "scenario is unknown, the homing move faulted or the log is "
+                                 "shorter than that")
+    E_rms_mm: float | None = Field(None, ge=0.0, description="The log's rms of x - x_r "
+                                   "over the same window [mm]")
+
+    @model_validator(mode="after")
+    def _check(self) -> LoggedRun:
+        if (self.controller_config is None) == (self.controller_missing is None):
+            raise ValueError("exactly one of controller_config and controller_missing must be "
+                             "given")
+        if (self.E_p_mm is None) != (self.E_rms_mm is None):
+            raise ValueError("E_p_mm and E_rms_mm must be given together")
+        return self
+
+
 class SourceInfo(_Strict):
     """A log the model came from."""
 
     log: str = Field(description="Path of the run log as given to identify")
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the log file")
     duration_s: float = Field(ge=0.0, description="Duration of the log [s]")
+    run: LoggedRun | None = Field(None, description="Added: what the log's run record says of "
+                                  "the run (closed loop or not, scenario, the controller that "
+                                  "ran, the measured tracking indices); absent: not recorded, "
+                                  "and tune's log check asks for identify to be run again")
 
 
 #: Added: the logs of a model fitted to several logs of one rig, one mapping per log (a model
