@@ -15,6 +15,7 @@ import numpy as np
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.rig.identification_run import position_loop
 from pneutune.control.rig.simrig import SimRig
+from pneutune.control.sim.scenarios import metric_window
 
 
 def tracking_metrics(dt: float, mode: str = "immediate", duration: float = 10.0,
@@ -31,7 +32,7 @@ def tracking_metrics(dt: float, mode: str = "immediate", duration: float = 10.0,
         err[k] = y[0] - x_r
         rig.write(position_loop(float(y[0]), x_r, 0.0025))
         rig.advance()
-    last = err[-round(3.0 / freq / rig.Ts):]
+    last = err[-metric_window(1.0 / freq, rig.Ts):]
     return float(np.abs(last).max() * 1e3), float(np.sqrt(np.mean(last**2)) * 1e3)
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import load_plant
 from pneutune.control.sim.closed_loop import simulate_scenario
-from pneutune.control.sim.scenarios import EDGE, SCENARIOS
+from pneutune.control.sim.scenarios import EDGE, SCENARIOS, metric_window
 
 #: Phase edges within the half period [s] (module docstring).
 PHASES = (("start", 0.0, 0.15), ("middle", 0.15, EDGE - 0.15), ("arrive", EDGE - 0.15, EDGE),
@@ -52,7 +52,7 @@ def analyse(controller_path: str, plant_path: str | None, seed: int) -> None:
     res = simulate_scenario(load_controller(controller_path), sc, load_plant(plant_path),
                             seed=seed, record_truth=True)
     n = res.sensors.shape[0]
-    window = min(n, round(3.0 * sc.period / res.Ts))
+    window = min(n, metric_window(sc.period, res.Ts))
     sl = slice(n - window, n)
     t = res.t[sl]
     e = (res.sensors[sl, 0] - res.reference[sl, 0]) * 1e3

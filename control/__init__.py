@@ -1,50 +1,33 @@
 """The rig and its controller: plant model and simulator, valves and PWM, friction, Kalman
 filters, DARC variants, scenarios, closed loop, MCAP run logs, config schemas and the runtime.
 
+``deploy(controller, rig, scenarios)`` does what the ``deploy`` command does
+(:mod:`pneutune.control.rig.deploy`; imported on first use)::
+
+    from pneutune.control import deploy
+    result = deploy("data/controller-paper.yaml", scenarios="table1")
+
 The package is layered; each layer imports only those before it (checked by import-linter in
 ``make lint``, docs/architecture.md): ``constants``/``errors`` -> ``physics`` -> ``contracts`` ->
 ``logs`` -> ``plant`` -> ``law`` -> ``sim`` -> ``rig`` -> ``cli``. It never imports
 ``pneutune.identify`` or ``pneutune.tune``.
 
-numba cache: numba keys a cached compiled function on its own source file only, so after an
-edit of a module it calls (or of index constants it imports) a cached caller would keep running
-the old code. pneutune therefore points numba's cache at a folder named by a hash of every source
-file of this package and its subpackages (unless ``NUMBA_CACHE_DIR`` is set): any change of the
-sources, or a new version, compiles afresh.
+Compiled functions are cached on disk in a folder named by a hash of pneutune's sources
+(:mod:`pneutune.control.numba_cache`), registered here, before any of them is defined.
 """
 
-import hashlib
-import os
-from importlib.metadata import PackageNotFoundError, version
-from pathlib import Path
+from typing import Any
 
-try:
-    __version__ = version("pneutune")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-    __version__ = "0.0.0+unknown"
+from pneutune.control.constants import VERSION
+from pneutune.control.numba_cache import register_locator
+
+__version__ = VERSION
+register_locator()
 
 
-def _source_hash() -> str:
-    h = hashlib.sha256(__version__.encode())
-    root = Path(__file__).parent
-    for path in sorted(root.rglob("*.py")):
-        h.update(path.relative_to(root).as_posix().encode())
-        h.update(path.read_bytes())
-    return h.hexdigest()[:16]
+def __getattr__(name: str) -> Any:
+    if name in ("deploy", "DeployResult"):
+        from pneutune.control.rig import deploy as module
 
-
-def _configure_numba_cache() -> None:
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return
-    import numba
-
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    folder = base / "pneutune" / "numba" / _source_hash()
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:  # read-only home: fall back to numba's default (beside the sources)
-        return
-    numba.config.CACHE_DIR = str(folder)
-
-
-_configure_numba_cache()
+        return getattr(module, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,6 +2,14 @@
 
 from __future__ import annotations
 
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    #: The installed pneutune's version (``pneutune.control.__version__``).
+    VERSION: str = version("pneutune")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+    VERSION = "0.0.0+unknown"
+
 #: ISO 6358 reference temperature [K].
 T_REF: float = 293.15
 #: Air density at the ISO 6358 reference conditions [kg/m^3].

@@ -10,7 +10,19 @@ from __future__ import annotations
 
 
 class PneutuneError(Exception):
-    """Base of all user-facing errors (bad input, not a bug)."""
+    """Base of all user-facing errors (bad input, not a bug).
+
+    Attributes
+    ----------
+    argument, flag : str or None
+        Set by :func:`argument_error`: the library argument and the command flag at fault.
+    rule : str
+        The rule broken and the value, without the argument's name.
+    """
+
+    argument: str | None = None
+    flag: str | None = None
+    rule: str = ""
 
 
 class ConfigError(PneutuneError, ValueError):
@@ -90,3 +102,41 @@ class LogSchemaError(LogError):
 
 class ExperimentError(PneutuneError, ValueError):
     """An experiment or scenario cannot be run as requested."""
+
+
+def argument_error(cls: type[PneutuneError], argument: str, rule: str,
+                   flag: str | None = None) -> PneutuneError:
+    """An error about one argument of a library call, worded for the library and the command.
+
+    ``str()`` of the error names the Python argument (``mass_tol must be in [0, 1), got 2``);
+    :func:`command_message` names the command's flag instead (``--mass-tol must be ...``), so
+    the same check serves a notebook and the command line.
+
+    Parameters
+    ----------
+    cls : type
+        The error class (a :class:`PneutuneError` taking one message).
+    argument : str
+        The argument's Python name.
+    rule : str
+        The rule and the value that broke it, without the name.
+    flag : str, optional
+        The command's flag; default ``--`` and the argument with ``_`` as ``-``.
+
+    Returns
+    -------
+    PneutuneError
+        To raise.
+    """
+    exc = cls(f"{argument} {rule}")
+    exc.argument = argument
+    exc.flag = flag or "--" + argument.replace("_", "-")
+    exc.rule = rule
+    return exc
+
+
+def command_message(exc: BaseException) -> str:
+    """The error's message as a command prints it: an argument error names the flag."""
+    if isinstance(exc, PneutuneError) and exc.flag:
+        return f"{exc.flag} {exc.rule}"
+    return str(exc)

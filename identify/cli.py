@@ -6,10 +6,8 @@ import contextlib
 import functools
 import gc
 from collections.abc import Iterator, Sequence
-from pathlib import Path
 
 from pneutune.control.cli.common import info, make_parser, print_json, run_cli
-from pneutune.control.contracts.model import save_model
 
 DESCRIPTION = """\
 Identify the servo-pneumatic axis behind a run log (MCAP, contract pneutune.log/1): valve
@@ -86,24 +84,18 @@ def _main(argv: Sequence[str] | None, fresh_process: bool) -> int:
 
     with _collector_paused() if fresh_process else contextlib.nullcontext():
         from .pipeline import check_arguments, identify
-        from .report import format_summary, write_report
+        from .report import format_summary
 
     check_arguments(args.holdout, args.mass, args.mass_tol)
-    logs = " ".join(args.logs)
-    info(f"identify: reading {logs}")
+    info(f"identify: reading {' '.join(args.logs)}")
     result = identify(args.logs[0] if len(args.logs) == 1 else args.logs, holdout=args.holdout,
                       mass=args.mass, mass_tol=args.mass_tol, seed=args.seed)
-    out = Path(args.out)
-    model_path = out / "model.yaml"
-    save_model(result.model, model_path,
-               header=f"pneutune identify {logs}\nsee report.md beside this file")
-    report = write_report(result, out)
+    paths = result.save(args.out)
     if args.json:
-        print_json({"model": str(model_path), "report": str(report),
-                    **result.model.to_dict()})
+        print_json({**paths, **result.model.to_dict()})
     else:
         info(format_summary(result))
-        info(f"wrote {model_path} and {report}")
+        info(f"wrote {paths['model']} and {paths['report']}")
     return 0
 
 

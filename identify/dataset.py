@@ -20,14 +20,18 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.signal import savgol_filter
 
 from pneutune.control.constants import RIG_KEYS, VALVES
 from pneutune.control.contracts.plant import RigConfig
-from pneutune.control.errors import LogError
+from pneutune.control.errors import LogError, MissingTopicError, NonFiniteValueError
 from pneutune.control.logs.reader import RunLog, read_run_log
+from pneutune.control.logs.topics import REQUIRED_TOPICS
+
+from .run_record import run_record
 
 #: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (catches gauge pressures or bar).
 P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5
@@ -88,6 +92,9 @@ class Dataset:
         The segment a fault or an interrupt stopped (``record`` writes it), or "".
     selection : str
         The ``record --segments`` selection the run was made of, or "" for a whole protocol.
+    run_record : dict or None
+        model.yaml's ``source.run`` of the log
+        (:func:`~pneutune.identify.run_record.run_record`), or None (a pool of logs).
     """
 
     path: str
@@ -108,6 +115,7 @@ class Dataset:
     run_status: str = ""
     stopped_in: str = ""
     selection: str = ""
+    run_record: dict[str, Any] | None = None
 
     @property
     def n(self) -> int:
@@ -147,7 +155,7 @@ class Dataset:
                        mass_hint=self.mass_hint, scenario=self.scenario,
                        segments=self.segments, experiment=self.experiment,
                        run_status=self.run_status, stopped_in=self.stopped_in,
-                       selection=self.selection)
+                       selection=self.selection, run_record=self.run_record)
 
     @property
     def duration(self) -> float:
@@ -292,8 +300,14 @@ def _align(log: RunLog) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ts, s[["x", "p_a", "p_b", "p_s"]].to_numpy(dtype=float), u
 
 
-def load_dataset(path: str | os.PathLike[str]) -> Dataset:
+def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
     """Read and check a run log for identification.
+
+    Parameters
+    ----------
+    path : path-like or RunLog
+        The log's file, or the log as :func:`~pneutune.control.logs.reader.read_run_log`
+        read it (then the required topics and their finite values are checked again here).
 
     Raises
     ------
@@ -301,7 +315,10 @@ def load_dataset(path: str | os.PathLike[str]) -> Dataset:
         Any bad-file case of contract 1 (typed, from the reader) or an
         :class:`IdentificationError` from the checks above.
     """
-    log = read_run_log(Path(path))
+    log = path if isinstance(path, RunLog) else read_run_log(Path(path))
+    if isinstance(path, RunLog):
+        _check_read_log(log)
+    path = log.path
     rig = _rig_from_log(log)
     h = sample_period(log, rig)
     check_plausible(log, rig, h)
@@ -314,7 +331,21 @@ def load_dataset(path: str | os.PathLike[str]) -> Dataset:
                    experiment=str(log.run.get("experiment", "")),
                    run_status=str(log.run.get("status", "")),
                    stopped_in=str(log.run.get("stopped_in", "")),
-                   selection=str(log.run.get("segments", "")))
+                   selection=str(log.run.get("segments", "")), run_record=run_record(log))
+
+
+def _check_read_log(log: RunLog) -> None:
+    """A log read elsewhere (maybe with ``allow_nonfinite``) holds what identification reads."""
+    for topic in REQUIRED_TOPICS:
+        if not log.has(topic):
+            raise MissingTopicError(log.path, f"no messages on {topic}; identify needs "
+                                    f"{' and '.join(REQUIRED_TOPICS)}")
+        frame = log[topic].select_dtypes("number")
+        bad = ~np.isfinite(frame.to_numpy(dtype=float))
+        if bad.any():
+            row, col = np.argwhere(bad)[0]
+            raise NonFiniteValueError(log.path, f"{topic}: field {frame.columns[col]} is not "
+                                      f"finite at log time {frame.index[row]:.6f} s")
 
 
 def _segments(log: RunLog) -> tuple[tuple[float, str, str], ...]:
@@ -362,7 +393,7 @@ def check_same_rig(datasets: Sequence[Dataset]) -> None:
                 f"with one moving mass")
 
 
-def load_datasets(paths: Sequence[str | os.PathLike[str]]) -> list[Dataset]:
+def load_datasets(paths: Sequence[str | os.PathLike[str] | RunLog]) -> list[Dataset]:
     """Read and check several run logs of one rig (:func:`load_dataset`, :func:`check_same_rig`).
 
     Raises

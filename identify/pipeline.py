@@ -31,7 +31,8 @@ import dataclasses
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,10 +40,11 @@ import numpy as np
 from pneutune.control.constants import MODEL_SCHEMA, VALVES, WEAK_B_SPAN
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.plant import PlantConfig
-from pneutune.control.errors import ExperimentError, LogError
+from pneutune.control.errors import ExperimentError, LogError, argument_error
+from pneutune.control.logs.reader import RunLog
 from pneutune.control.sim.scenarios import SCENARIOS
 
-from .bounds import ThetaBounds, theta_bounds
+from .bounds import FrictionFit, ThetaBounds, theta_bounds
 from .coverage import Coverage, coverage, lacks_mass_segments
 from .crosscheck import CrossCheck, cross_check, narrowed_model
 from .dataset import Dataset, IdentificationError, Pool, display_names, load_datasets, pool
@@ -91,9 +93,13 @@ def mass_sampling_limit(b_v: float, Ts: float) -> float:
     return b_v * Ts / np.pi
 
 
-@dataclass
+@dataclass(frozen=True, repr=False)
 class IdentifyResult:
-    """Everything ``identify`` learned, for model.yaml and the report."""
+    """Everything ``identify`` learned, for model.yaml and the report.
+
+    ``model`` is contract 3 (model.yaml); :meth:`save` writes it and the report. ``repr``
+    shows the logs, θ's nominal and range, the held-out NRMSE and the number of notes.
+    """
 
     data: Dataset
     valves: ValveIdentifier
@@ -106,7 +112,7 @@ class IdentifyResult:
     validation: Validation
     model: ModelConfig
     plant: PlantConfig
-    notes: list[str] = field(default_factory=list)
+    notes: tuple[str, ...] = ()
     #: the log at its own sampling period (``data`` holds the control instants the fits use)
     log: Dataset | None = None
     #: the cross-check of the ranges against the held-out log (None when skipped)
@@ -122,6 +128,50 @@ class IdentifyResult:
     def names(self) -> tuple[str, ...]:
         """Short names of the logs (:func:`~pneutune.identify.dataset.display_names`)."""
         return display_names([d.path for d in self.logs]) if self.logs else (self.data.path,)
+
+    def __repr__(self) -> str:
+        th = self.model.theta
+        theta = ", ".join(f"{lo:.4g}<={nom:.4g}<={hi:.4g}" for lo, nom, hi in
+                          zip(th.min, th.nominal, th.max, strict=True))
+        fit = ", ".join(f"{k} {v:.3g}" for k, v in self.validation.nrmse.items())
+        lo, hi = self.mass_range
+        return (f"IdentifyResult(logs={list(self.names)}, mass={self.mass:.4g} kg in "
+                f"[{lo:.4g}, {hi:.4g}], theta=[{theta}], held-out NRMSE: {fit}, "
+                f"{len(self.notes)} notes)")
+
+    def save(self, out: str | os.PathLike[str], report: bool = True,
+             header: str | None = None) -> dict[str, str]:
+        """Write ``out/model.yaml`` (contract 3, atomically) and, with ``report``,
+        ``out/report.md`` with its figures.
+
+        Parameters
+        ----------
+        out : path-like
+            Output folder (made if missing).
+        report : bool
+            Write the report and its figures too.
+        header : str, optional
+            Comment lines at the top of model.yaml; default names the logs.
+
+        Returns
+        -------
+        dict
+            ``model`` and, with ``report``, ``report``: the paths written.
+        """
+        from pneutune.control.contracts.model import save_model
+
+        from .report import write_report
+
+        folder = Path(out)
+        model_path = folder / "model.yaml"
+        logs = " ".join(d.path for d in self.logs) if self.logs else self.data.path
+        save_model(self.model, model_path, header=header or (
+            f"pneutune identify {logs}\nsee report.md beside this file" if report else
+            f"pneutune identify {logs}"))
+        paths = {"model": str(model_path)}
+        if report:
+            paths["report"] = str(write_report(self, folder))
+        return paths
 
 
 def _lag_mass(log: Dataset | Sequence[Dataset], friction: FrictionIdentifier,
@@ -244,11 +294,12 @@ def check_arguments(holdout: float, mass: float | None, mass_tol: float) -> None
         [0, 1).
     """
     if mass is not None and not 0.0 < mass <= 1000.0:
-        raise ExperimentError(f"--mass must be in (0, 1000] kg, got {mass}")
+        raise argument_error(ExperimentError, "mass", f"must be in (0, 1000] kg, got {mass}")
     if not 0.0 <= mass_tol < 1.0:
-        raise ExperimentError(f"--mass-tol must be in [0, 1), got {mass_tol}")
+        raise argument_error(ExperimentError, "mass_tol", f"must be in [0, 1), got {mass_tol}")
     if not 0.05 <= holdout <= 0.5:
-        raise ExperimentError(f"--holdout must be in [0.05, 0.5], got {holdout}")
+        raise argument_error(ExperimentError, "holdout",
+                             f"must be in [0.05, 0.5], got {holdout}")
 
 
 def _scenario_notes(data: Dataset, name: str | None = None) -> list[str]:
@@ -272,39 +323,52 @@ def _scenario_notes(data: Dataset, name: str | None = None) -> list[str]:
             f"--scenario sine-0.5hz --log`) for the model tune should use"]
 
 
-LogPaths = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+#: One run log: its path, or the log as read by :func:`~pneutune.control.logs.reader.read_run_log`.
+LogSource = str | os.PathLike[str] | RunLog
+LogPaths = LogSource | Sequence[LogSource]
 
 
-def log_paths(logs: LogPaths) -> list[str | os.PathLike[str]]:
+def log_paths(logs: LogPaths) -> list[LogSource]:
     """The run logs of :func:`identify`'s ``logs`` argument, as a list.
 
     Raises
     ------
     ExperimentError
-        No log, or one log given twice.
+        No log, or one log given twice (one file, as a path or read).
     """
-    paths = [logs] if isinstance(logs, (str, os.PathLike)) else list(logs)
+    paths = [logs] if isinstance(logs, (str, os.PathLike, RunLog)) else list(logs)
     if not paths:
         raise ExperimentError("identify needs at least one run log")
     seen: dict[str, str] = {}
     for p in paths:
-        key = os.path.realpath(p)
+        name = p.path if isinstance(p, RunLog) else str(p)
+        key = os.path.realpath(name)
         if key in seen:
-            raise ExperimentError(f"{p}: given twice (as {seen[key]}); give each log once")
-        seen[key] = str(p)
+            raise ExperimentError(f"{name}: given twice (as {seen[key]}); give each log once")
+        seen[key] = name
     return paths
 
 
 def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
-             mass_tol: float = 0.05, seed: int = 0, check: bool = True) -> IdentifyResult:
+             mass_tol: float = 0.05, seed: int = 0, check: bool = True,
+             out: str | os.PathLike[str] | None = None) -> IdentifyResult:
     """Identify the plant behind one run log, or one model behind several logs of one rig.
+
+    What the ``identify`` command does, with the same checks; it writes files only when
+    ``out`` is given (:meth:`IdentifyResult.save`)::
+
+        from pneutune.identify import identify
+        result = identify("data/run.mcap")
+        result.model            # contract 3, as model.yaml holds it
+        result.save("reports/identify")
 
     Parameters
     ----------
-    logs : path-like, or sequence of path-like
-        The MCAP run log (contract 1), or several logs of one rig (equal ``rig`` metadata;
-        their sampling periods may differ): one model is fitted to all of them
-        (docs/identification.md, "Several logs").
+    logs : path-like or RunLog, or a sequence of them
+        The MCAP run log (contract 1), as a path or as read by
+        :func:`~pneutune.control.logs.reader.read_run_log`, or several logs of one rig (equal
+        ``rig`` metadata; their sampling periods may differ): one model is fitted to all of
+        them (docs/identification.md, "Several logs").
     holdout : float
         Fraction of every 10 s of each log kept for validation (its end), in [0.05, 0.5].
     mass : float, optional
@@ -316,6 +380,9 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     check : bool
         Cross-check every range end against the held-out logs and move in those they rule out
         (:mod:`~pneutune.identify.crosscheck`).
+    out : path-like, optional
+        Write model.yaml and report.md there (:meth:`IdentifyResult.save`); default: nothing
+        is written.
 
     Returns
     -------
@@ -370,10 +437,13 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     if len(pl.spans) > 1 and not isinstance(friction, PriorFriction):
         notes += friction_disagreements(pl, fit, M)
     boot = friction.smooth_bootstrap(n_boot=300, block=50, seed=seed)
-    theta = theta_bounds(M, M_range, M_basis, friction.smooth_, boot, friction.b_v_,
-                         friction.F_C_, friction.F_S_, valves.D_, valves.D_std_,
-                         _low_speed_margin(data, friction, notes),
-                         stiction_resolved=friction.stiction_resolved_)
+    theta = theta_bounds(
+        mass=M, mass_range=M_range, mass_basis=M_basis,
+        friction=FrictionFit(smooth=friction.smooth_, smooth_boot=boot,
+                             stribeck_b_v=friction.b_v_, F_C=friction.F_C_, F_S=friction.F_S_,
+                             low_speed_margin=_low_speed_margin(data, friction, notes),
+                             stiction_resolved=friction.stiction_resolved_),
+        D=valves.D_, D_std=valves.D_std_)
     if isinstance(friction, PriorFriction):
         theta = _prior_theta(theta, friction)
     elif not friction.stiction_resolved_:
@@ -397,8 +467,12 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
         notes += cc.notes()
         model = narrowed_model(model, cc.box).model_copy(update={"notes": tuple(notes)})
         M_range = (model.theta.min[0], model.theta.max[0])
-    return IdentifyResult(data, valves, friction, M, M_range, M_basis, M_est, theta,
-                          validation, model, plant_cfg, notes, log, cc, tuple(full), pl, covs)
+    result = IdentifyResult(data, valves, friction, M, M_range, M_basis, M_est, theta,
+                            validation, model, plant_cfg, tuple(notes), log, cc, tuple(full), pl,
+                            covs)
+    if out is not None:
+        result.save(out)
+    return result
 
 
 def _pool_members(ctrl: Sequence[Dataset], names: Sequence[str], notes: list[str]) -> list[int]:
@@ -916,7 +990,8 @@ def _model(data: Dataset, logs: Dataset | Sequence[Dataset], valves: ValveIdenti
             basis[key] = ("weakly identified: the chamber's valves are never all shut, "
                           "widened to cover zero")
     duty, ratio = _curve_points(valves.knots_, valves.curve_)
-    src = [{"log": d.path, "sha256": d.sha256, "duration_s": d.duration} for d in datasets]
+    src = [{"log": d.path, "sha256": d.sha256, "duration_s": d.duration,
+            **({"run": d.run_record} if d.run_record is not None else {})} for d in datasets]
     data_dict = {
         "schema": MODEL_SCHEMA,
         # one log: the mapping outside readers know; several: one mapping per log

@@ -129,7 +129,7 @@ def test_pruner_names_and_defaults() -> None:
     assert study_pruner(None, None) == DEFAULT_PRUNER  # a new study
     assert study_pruner({"seed": 1}, None) == "median"  # a study made before the option
     assert study_pruner({"pruner": "wilcoxon"}, "median") == "median"  # asked: checked later
-    with pytest.raises(TuneError, match="--pruner must be one of"):
+    with pytest.raises(TuneError, match=r"^pruner must be one of"):
         TuneSettings(trials=3, pruner="hyperband")
 
 

@@ -23,15 +23,16 @@ import hashlib
 import json
 import math
 import os
+import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import optuna
 from optuna.trial import FrozenTrial
 
+from pneutune.control.constants import VERSION
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import (
     PAPER_CONTROLLER,
@@ -42,7 +43,7 @@ from pneutune.control.contracts.controller import (
 )
 from pneutune.control.contracts.model import ModelConfig, load_model
 from pneutune.control.contracts.yamlio import write_yaml
-from pneutune.control.errors import ConfigError
+from pneutune.control.errors import ConfigError, argument_error
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
@@ -75,10 +76,13 @@ class TuneSettings:
     ----------
     trials : int
         Finished (complete + pruned) trials the study should hold in total, >= 1.
-    out : path-like
-        Output folder.
+    out : path-like or None
+        Output folder for controller.yaml, report.md and the plants (the command's default
+        is ``reports/tune``); None (the library's default): nothing is written
+        (:meth:`TuneResult.save` writes them later).
     storage : str or None
-        Journal file path or RDB URL; default ``out/study.journal``.
+        Journal file path or RDB URL; default ``out/study.journal``, or with no ``out`` a
+        temporary journal that lives as long as the result (the study cannot be resumed).
     study : str or None
         Study name; default ``tune-<model sha256[:12]>-seed<S>``.
     workers : int
@@ -99,7 +103,7 @@ class TuneSettings:
     """
 
     trials: int
-    out: str | os.PathLike[str] = DEFAULT_OUT
+    out: str | os.PathLike[str] | None = None
     storage: str | None = None
     study: str | None = None
     workers: int = 1
@@ -111,20 +115,23 @@ class TuneSettings:
 
     def __post_init__(self) -> None:
         if self.trials < 1:
-            raise TuneError(f"--trials must be >= 1, got {self.trials}")
+            raise argument_error(TuneError, "trials", f"must be >= 1, got {self.trials}")
         if self.workers < 1:
-            raise TuneError(f"--workers must be >= 1, got {self.workers}")
+            raise argument_error(TuneError, "workers", f"must be >= 1, got {self.workers}")
         if self.seed < 0:
-            raise TuneError(f"--seed must be >= 0, got {self.seed}")
+            raise argument_error(TuneError, "seed", f"must be >= 0, got {self.seed}")
         if self.jobs is not None and self.jobs < 1:
-            raise TuneError(f"--jobs must be >= 1, got {self.jobs}")
+            raise argument_error(TuneError, "jobs", f"must be >= 1, got {self.jobs}")
         check_sampler(self.sampler)  # unknown, or its package missing: before any simulation
         check_pruner(self.pruner)
 
 
-@dataclass
+@dataclass(frozen=True, repr=False)
 class TuneResult:
     """What :func:`tune` produced.
+
+    ``controller`` is contract 4 (controller.yaml); :meth:`save` writes it with the report and
+    the plants. ``repr`` shows the study, the kept trial and its score against the paper's.
 
     Attributes
     ----------
@@ -141,7 +148,8 @@ class TuneResult:
     run : RunSummary
         Trial counts before and after, wall time.
     paths : dict
-        ``controller``, ``report``, ``plant_nominal``, ``plant_worst``.
+        ``controller``, ``report``, ``plant_nominal``, ``plant_worst`` as written into
+        ``settings.out``; empty when nothing was written.
     info : dict
         The model, its sha256, the storage (password redacted), seed, workers, jobs.
     """
@@ -155,6 +163,39 @@ class TuneResult:
     paths: dict[str, str]
     info: dict[str, Any]
     guard: GuardResult | None = None
+    #: what :meth:`save` needs: the objective (its draws) and the report's facts
+    _objective: TuneObjective | None = field(default=None, compare=False)
+    _report: dict[str, Any] = field(default_factory=dict, compare=False)
+    #: the temporary folder of a study kept in no file the caller named
+    _scratch: Any = field(default=None, compare=False)
+
+    def __repr__(self) -> str:
+        comp = self.comparison
+        paper = "n/a" if comp.paper.value is None else f"{comp.paper.value:.4g}"
+        counts = self.run.counts_after
+        return (f"TuneResult(study={self.info['study']!r}, trials={finished(counts)} "
+                f"({counts['COMPLETE']} complete, {counts['PRUNED']} pruned), "
+                f"best=#{self.best.number}, objective={comp.tuned.value:.4g} "
+                f"(paper's gains {paper}), variant={self.controller.variant!r}, "
+                f"written={sorted(self.paths) or 'nothing'})")
+
+    def save(self, out: str | os.PathLike[str]) -> dict[str, str]:
+        """Write controller.yaml, plant-nominal.yaml, plant-worst.yaml (atomically) and
+        report.md with its figures into ``out``.
+
+        Parameters
+        ----------
+        out : path-like
+            Output folder (made if missing).
+
+        Returns
+        -------
+        dict
+            ``controller``, ``plant_nominal``, ``plant_worst``, ``report``: the paths written.
+        """
+        if self._objective is None:  # pragma: no cover - a record built by hand
+            raise ValueError("this TuneResult does not hold what the report needs")
+        return _save(Path(out), self, self._objective, self._report)
 
     def summary(self) -> dict[str, Any]:
         """The object ``tune --json`` prints."""
@@ -180,10 +221,7 @@ class TuneResult:
 
 def version() -> str:
     """The installed pneutune version."""
-    try:
-        return metadata.version("pneutune")
-    except metadata.PackageNotFoundError:  # pragma: no cover - not installed
-        return "unknown"
+    return VERSION
 
 
 def available_cpus() -> int:
@@ -251,13 +289,18 @@ def failure_summary(study: optuna.Study) -> str:
     return "; ".join(f"{n}x {why}" for why, n in top)
 
 
-def _load(model: ModelConfig | str | os.PathLike[str]) -> tuple[ModelConfig, str, str]:
+def _load(model: Any) -> tuple[ModelConfig, str, str]:
     """The model, its sha256 and a name for messages. A model in memory is hashed over its
     canonical JSON (a file's hash is over its bytes: the same model read from a file and built
     in memory make different studies)."""
+    if isinstance(getattr(model, "model", None), ModelConfig):  # identify's result
+        model = model.model
     if isinstance(model, ModelConfig):
         text = json.dumps(model.to_dict(), sort_keys=True)
         return model, hashlib.sha256(text.encode()).hexdigest(), "<model>"
+    if not isinstance(model, (str, os.PathLike)):
+        raise argument_error(TuneError, "model", "must be a model.yaml path, a ModelConfig or "
+                             f"identify's result, got {type(model).__name__}")
     path = Path(model)
     if not path.is_file():
         raise ConfigError(str(path), "", "no such model file; run identify first "
@@ -266,16 +309,19 @@ def _load(model: ModelConfig | str | os.PathLike[str]) -> tuple[ModelConfig, str
     return load_model(path), sha256_file(path), str(path)
 
 
-def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
+def tune(model: Any, settings: TuneSettings | None = None,
          progress: Callable[[int, int], None] | None = None,
          notes: Callable[[str], None] | None = None) -> TuneResult:
-    """Tune the modified DARC on an identified model and write controller.yaml and report.md.
+    """Tune the modified DARC on an identified model; write controller.yaml and report.md
+    when ``settings.out`` is given.
 
     Parameters
     ----------
-    model : ModelConfig or path-like
-        The identified model (contract 3), or its file.
-    settings : TuneSettings
+    model : ModelConfig, path-like, or a result with a ``model`` attribute
+        The identified model (contract 3), its file, or what
+        :func:`pneutune.identify.identify` returned.
+    settings : TuneSettings, optional
+        Default ``TuneSettings(trials=200)``: the command's defaults, nothing written.
     progress : callable, optional
         ``progress(finished, total)`` now and then.
     notes : callable, optional
@@ -294,6 +340,7 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
         Bad settings, an unusable storage, a stored study made for another model, seed or
         sampler, a sampler whose package is not installed.
     """
+    settings = TuneSettings(trials=200) if settings is None else settings
     check_sampler(settings.sampler)
     model_cfg, model_sha, name = _load(model)
     try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
@@ -303,8 +350,14 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     except ConfigError as exc:
         raise ConfigError(name, exc.key, "cannot make a controller.yaml from this model: "
                           f"{exc.message}") from None
-    out = Path(settings.out)
-    storage = settings.storage if settings.storage else str(out / DEFAULT_JOURNAL)
+    scratch = None
+    if settings.storage:
+        storage = settings.storage
+    elif settings.out is not None:
+        storage = str(Path(settings.out) / DEFAULT_JOURNAL)
+    else:  # nothing to be written: the study lives in a journal as long as the result
+        scratch = tempfile.TemporaryDirectory(prefix="pneutune-tune-")
+        storage = str(Path(scratch.name) / DEFAULT_JOURNAL)
     storage_scheme(storage)  # an unknown scheme is bad input before any simulation
     try:
         feas = check_feasibility(model_cfg, settings.seed, settings.objective,
@@ -353,24 +406,25 @@ def tune(model: ModelConfig | str | os.PathLike[str], settings: TuneSettings,
     for line in log_check.warnings():
         if notes is not None:
             notes(line)
-    paths = _write(out, name, model_sha, study_name, best, tuned, objective, comp, settings)
     report_info = {
         "model": name, "model_sha256": model_sha, "storage": redact_url(storage),
-        "n_trials": settings.trials, "counts": counts, "controller": paths["controller"],
-        "paper_path": paper_path(), "plant_nominal": paths["plant_nominal"],
-        "plant_worst": paths["plant_worst"], "feasibility": feas.notes(),
+        "n_trials": settings.trials, "counts": counts,
+        "paper_path": paper_path(), "feasibility": feas.notes(),
         "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
         "behind_paper": behind, "log_check": log_check.lines(),
+        "study": study_name, "seed": settings.seed, "paper": paper,
     }
-    paths["report"] = str(write_report(out, objective, study, best, tuned, paper, comp,
-                                       report_info))
     info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
             "pruner": run.pruner,
             "behind_paper": behind, "log_check": log_check.as_dict()}
-    return TuneResult(tuned, study, best, comp, feas, run, paths, info, guard)
+    result = TuneResult(tuned, study, best, comp, feas, run, {}, info, guard,
+                        objective, report_info, scratch)
+    if settings.out is None:
+        return result
+    return dataclasses.replace(result, paths=result.save(settings.out))
 
 
 def _same(a: dict[str, float], b: dict[str, float]) -> bool:
@@ -420,16 +474,29 @@ def behind_paper(comp: Comparison, trial: int, settings: TuneSettings) -> str | 
             f"another --seed")
 
 
+def _save(out: Path, result: TuneResult, objective: TuneObjective,
+          report: dict[str, Any]) -> dict[str, str]:
+    """controller.yaml and the nominal and worst plants (atomically), then report.md; their
+    paths."""
+    paths = _write(out, report["model"], report["model_sha256"], report["study"], result.best,
+                   result.controller, objective, result.comparison, report["seed"])
+    facts = {k: v for k, v in report.items() if k not in ("study", "seed", "paper")}
+    paths["report"] = str(write_report(out, objective, result.study, result.best,
+                                       result.controller, report["paper"], result.comparison,
+                                       {**facts, **paths}))
+    return paths
+
+
 def _write(out: Path, name: str, model_sha: str, study_name: str, best: FrozenTrial,
            tuned: ControllerConfig, objective: TuneObjective, comp: Comparison,
-           settings: TuneSettings) -> dict[str, str]:
+           seed: int) -> dict[str, str]:
     """controller.yaml and the nominal and worst plants, atomically; their paths."""
     out.mkdir(parents=True, exist_ok=True)
     controller_path = out / "controller.yaml"
     nominal_path = out / "plant-nominal.yaml"
     worst_path = out / "plant-worst.yaml"
     header = (f"Tuned by `tune` (pneutune {version()}): study {study_name}, trial "
-              f"{best.number}, objective {best.value:.6g}, seed {settings.seed}.\n"
+              f"{best.number}, objective {best.value:.6g}, seed {seed}.\n"
               f"Model {name} (sha256 {model_sha}).\n"
               f"Nominal runs: simulate --controller {controller_path} --plant "
               f"{nominal_path} --scenario all\n"
@@ -443,7 +510,7 @@ def _write(out: Path, name: str, model_sha: str, study_name: str, best: FrozenTr
                       f"{objective.draws[0].noise_seed}. Contract 2.")
     wd = objective.draws[comp.worst_draw]
     write_yaml(worst_path, wd.plant.to_dict(),
-               header=f"Draw {wd.index} ({wd.label}) of {name}, seed {settings.seed}: where "
+               header=f"Draw {wd.index} ({wd.label}) of {name}, seed {seed}: where "
                       "the tuned controller does worst. Contract 2.")
     return {"controller": str(controller_path), "plant_nominal": str(nominal_path),
             "plant_worst": str(worst_path)}

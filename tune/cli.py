@@ -133,9 +133,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                              "valves' dead zone: up (default: at least the smallest pulse that "
                              "opens the valve, every PWM period) or dither (whole smallest "
                              "pulses in some periods, their mean the wanted opening). Dither "
-                             "measured worse on every fleet plant tried (docs/tuning.md); try it "
-                             "on a rig whose smallest pulse is large (default study name gets "
-                             "-dither)")
+                             "measured worse on four of five fleet plants (better on one latched "
+                             "plant; docs/notes/2026-11-26-tune-levers.md); try it on a rig "
+                             "whose smallest pulse is large (default study name gets -dither)")
     parser.add_argument("--pruner", choices=PRUNERS, default=None,
                         help="how trials are stopped early: median (default for a new "
                              "study: the running mean after each scenario against the median "

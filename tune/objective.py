@@ -64,7 +64,7 @@ import optuna
 
 from pneutune.control.contracts.controller import DEAD_ZONE_MODES, ControllerConfig
 from pneutune.control.contracts.model import ModelConfig
-from pneutune.control.errors import PneutuneError
+from pneutune.control.errors import PneutuneError, argument_error
 from pneutune.control.law.layout import pack
 from pneutune.control.sim.closed_loop import (
     ClosedLoopResult,
@@ -164,11 +164,11 @@ class ObjectiveSettings:
         if self.duration is not None and not self.duration > 0.0:
             raise TuneError(f"duration > 0 must hold, got {self.duration}")
         if self.variant not in VARIANTS:
-            raise TuneError(f"--variant must be one of {', '.join(VARIANTS)}, got "
-                            f"{self.variant!r}")
+            raise argument_error(TuneError, "variant", f"must be one of {', '.join(VARIANTS)}, "
+                                 f"got {self.variant!r}")
         if self.dead_zone not in DEAD_ZONE_MODES:
-            raise TuneError(f"--dead-zone must be one of {', '.join(DEAD_ZONE_MODES)}, got "
-                            f"{self.dead_zone!r}")
+            raise argument_error(TuneError, "dead_zone", "must be one of "
+                                 f"{', '.join(DEAD_ZONE_MODES)}, got {self.dead_zone!r}")
         for key, lo, hi in self.box:
             if not lo <= hi:
                 raise TuneError(f"box {key}: lo <= hi must hold, got lo={lo}, hi={hi}")

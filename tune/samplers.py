@@ -30,7 +30,7 @@ from optuna.distributions import BaseDistribution
 from optuna.samplers import BaseSampler
 from optuna.trial import FrozenTrial, TrialState
 
-from pneutune.control.errors import PneutuneError
+from pneutune.control.errors import PneutuneError, argument_error
 
 #: Samplers ``tune --sampler`` offers (``gp`` is accepted by the library, for the benchmark).
 SAMPLERS = ("tpe", "cmaes")
@@ -65,14 +65,15 @@ def check_sampler(name: str, library: bool = True) -> None:
     """
     known = LIBRARY_SAMPLERS if library else SAMPLERS
     if name not in known:
-        raise SamplerError(f"--sampler must be one of {', '.join(known)}, got {name!r}")
+        raise argument_error(SamplerError, "sampler",
+                             f"must be one of {', '.join(known)}, got {name!r}")
     if name in _NEEDS:
         module, how = _NEEDS[name]
         try:
             __import__(module)
         except ImportError:
-            raise SamplerError(f"--sampler {name} needs the {module} package, which is not "
-                               f"installed: {how}") from None
+            raise argument_error(SamplerError, "sampler", f"{name} needs the {module} package, "
+                                 f"which is not installed: {how}") from None
 
 
 def tpe(seed: int) -> optuna.samplers.TPESampler:

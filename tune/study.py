@@ -65,7 +65,7 @@ import optuna
 from optuna.trial import TrialState
 
 from pneutune.control.contracts.model import ModelConfig
-from pneutune.control.errors import PneutuneError
+from pneutune.control.errors import PneutuneError, argument_error
 
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .samplers import DEFAULT_SAMPLER, N_STARTUP_TRIALS, check_sampler, make_sampler
@@ -115,7 +115,8 @@ def check_pruner(name: str | None) -> None:
     """Raise :class:`~pneutune.tune.objective.TuneError` unless ``name`` is None or one of
     :data:`PRUNERS`."""
     if name is not None and name not in PRUNERS:
-        raise TuneError(f"--pruner must be one of {', '.join(PRUNERS)}, got {name!r}")
+        raise argument_error(TuneError, "pruner",
+                             f"must be one of {', '.join(PRUNERS)}, got {name!r}")
 
 
 def make_pruner(name: str) -> optuna.pruners.BasePruner:
@@ -193,8 +194,9 @@ def storage_scheme(storage: str) -> str:
         return "journal"
     scheme = storage.split("://", 1)[0].split("+", 1)[0].lower()
     if scheme not in _RDB_SCHEMES:
-        raise StorageError(f"--storage {storage!r}: unknown scheme {scheme!r}; expected a "
-                           f"journal file path, sqlite:///FILE or postgresql://USER@HOST:PORT/DB")
+        raise argument_error(StorageError, "storage", f"{storage!r}: unknown scheme {scheme!r}; "
+                             "expected a journal file path, sqlite:///FILE or "
+                             "postgresql://USER@HOST:PORT/DB")
     return scheme
 
 
@@ -242,7 +244,8 @@ def open_storage(storage: str) -> optuna.storages.BaseStorage:
                                               grace_period=GRACE_PERIOD, **kwargs)
     except Exception as exc:  # SQLAlchemy/driver errors: connection refused, bad URL, ...
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise StorageError(f"--storage {redact_url(storage)}: cannot open ({first})") from None
+        raise argument_error(StorageError, "storage",
+                             f"{redact_url(storage)}: cannot open ({first})") from None
 
 
 def redact_url(url: str) -> str:
@@ -605,11 +608,11 @@ def run_study(spec: StudySpec, model: ModelConfig,
     """
     _quiet_optuna()
     if spec.workers < 1:
-        raise StorageError(f"--workers >= 1 must hold, got {spec.workers}")
+        raise argument_error(StorageError, "workers", f"must be >= 1, got {spec.workers}")
     if spec.n_trials < 1:
-        raise StorageError(f"--trials >= 1 must hold, got {spec.n_trials}")
+        raise argument_error(StorageError, "trials", f"must be >= 1, got {spec.n_trials}")
     if spec.jobs < 1:
-        raise StorageError(f"--jobs >= 1 must hold, got {spec.jobs}")
+        raise argument_error(StorageError, "jobs", f"must be >= 1, got {spec.jobs}")
     check_sampler(spec.sampler)
     check_pruner(spec.pruner)
     t0 = time.perf_counter()

@@ -8,17 +8,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any, NoReturn
 
 import numpy as np
 
-from pneutune.control.contracts.atomic import sha256_file
-from pneutune.control.errors import PneutuneError
+from pneutune.control.errors import PneutuneError, command_message
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -66,7 +63,7 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None],
     try:
         code = main(argv)
     except PneutuneError as exc:
-        sys.stderr.write(f"error: {exc}\n")
+        sys.stderr.write(f"error: {command_message(exc)}\n")
         raise SystemExit(2) from None
     except KeyboardInterrupt:
         sys.stderr.write("error: interrupted\n")
@@ -80,16 +77,3 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None],
     raise SystemExit(0 if code is None else int(code))
 
 
-def plant_meta(plant: str | None) -> dict[str, str]:
-    """The plant as ``run`` metadata: the path as given and its content hash (not the absolute
-    path, so that the same plant gives the same log bytes wherever it lies)."""
-    if plant is None:
-        return {"plant": "<defaults>"}
-    return {"plant": plant, "plant_sha256": sha256_file(plant)}
-
-
-def scenario_log_path(path: str | os.PathLike[str], scenario: str, several: bool) -> Path:
-    """Where one scenario's log goes: ``path`` itself for a single scenario, else
-    ``<stem>-<scenario><suffix>`` beside it (suffix ``.mcap`` if ``path`` has none)."""
-    p = Path(path)
-    return p.with_name(f"{p.stem}-{scenario}{p.suffix or '.mcap'}") if several else p

@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pneutune.control.cli.common import info, make_parser, plant_meta, print_json, run_cli
+from pneutune.control.cli.common import info, make_parser, print_json, run_cli
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.errors import ExperimentError
+from pneutune.control.logs.recording import plant_meta
 from pneutune.control.logs.writer import ZSTD_LEVELS
 from pneutune.control.rig.excitation import (
     CONTACT_WARN_FACTOR,
@@ -170,10 +171,11 @@ def _check(opts: RecordOptions) -> None:
 def _open_rig(opts: RecordOptions) -> tuple[Any, dict[str, str], bool, int | None]:
     """The rig, its ``run`` metadata, whether it tells the truth, and the seed used (None for a
     driver whose command takes no ``{seed}``)."""
-    from pneutune.control.cli.deploy import parse_rig
     from pneutune.control.contracts.plant import load_plant
-    from pneutune.control.rig.pipe import ExecRig, PipeRig, divides, exec_command
+    from pneutune.control.rig.deploy import parse_rig
+    from pneutune.control.rig.exec_rig import ExecRig, PipeRig, exec_command
     from pneutune.control.rig.simrig import SimRig
+    from pneutune.control.rig.wire import divides
 
     kind, arg = parse_rig(opts.rig)
     if kind == "exec":

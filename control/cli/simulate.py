@@ -8,18 +8,13 @@ from typing import Any
 
 from tqdm import tqdm
 
-from pneutune.control.cli.common import (
-    info,
-    make_parser,
-    plant_meta,
-    print_json,
-    run_cli,
-    scenario_log_path,
-)
+from pneutune.control.cli.common import info, make_parser, print_json, run_cli
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ExperimentError
+from pneutune.control.logs.recording import plant_meta
 from pneutune.control.logs.writer import ZSTD_LEVELS
+from pneutune.control.rig.deploy import scenario_log_path
 from pneutune.control.sim.table import format_table
 
 DESCRIPTION = """\

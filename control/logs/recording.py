@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from pneutune.control import __version__
-from pneutune.control.constants import LOG_SCHEMA, VALVES
+from pneutune.control.constants import LOG_SCHEMA, VALVES, VERSION
+from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.logs.topics import topic_fields
 from pneutune.control.logs.writer import RunLogWriter
 
@@ -18,6 +18,14 @@ SENSOR_FIELDS = topic_fields("/rig/sensors")
 TRUTH_FIELDS = topic_fields("/sim/truth")
 #: The named fields of /control/state; the last field, theta_hat, is a vector of 6.
 CONTROL_STATE_FIELDS = topic_fields("/control/state")[:-1]
+
+
+def plant_meta(plant: str | None) -> dict[str, str]:
+    """The plant as ``run`` metadata: the path as given and its content hash (not the absolute
+    path, so that the same plant gives the same log bytes wherever it lies)."""
+    if plant is None:
+        return {"plant": "<defaults>"}
+    return {"plant": plant, "plant_sha256": sha256_file(plant)}
 
 
 @dataclass
@@ -115,7 +123,7 @@ class Recording:
             raise ValueError(f"truth_every must be a positive integer, got {truth_every!r}")
         # sample_period: the logging period, which an identification run makes shorter than
         # the control period rig.Ts (identification_run.IDENT_SAMPLE_PERIOD)
-        meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": __version__,
+        meta = {"schema": LOG_SCHEMA, "created_by": "pneutune", "version": VERSION,
                 "sample_period": repr(float(self.Ts))}
         meta.update({k: str(v) for k, v in run.items()})
         t = self.t

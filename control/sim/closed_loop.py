@@ -33,7 +33,7 @@ from pneutune.control.logs.recording import Recording
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.dynamics import rest_pressures
 from pneutune.control.plant.params import S_PA, S_PB, S_V, S_X, pack_plant
-from pneutune.control.sim.scenarios import Scenario
+from pneutune.control.sim.scenarios import Scenario, metric_window
 
 #: State indices logged on ``/control/state``: the named fields, then θ̂ (6).
 LOG_INDEX = np.array([*CONTROL_STATE_FIELDS.values(), *range(S_THETA, S_THETA + 6)],
@@ -234,7 +234,7 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
     :attr:`Metrics.full_open` and :attr:`Metrics.flow_limited`; None leaves them nan.
     """
     n = sensors.shape[0]
-    window = min(n, round(3.0 * scenario.period / Ts))
+    window = min(n, metric_window(scenario.period, Ts))
     nan = float("nan")
     if n == 0:
         return Metrics(nan, nan, nan, nan, nan, nan, nan, False, nan, status)

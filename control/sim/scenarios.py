@@ -21,6 +21,25 @@ from pneutune.control.errors import ExperimentError
 
 AMPLITUDE = 0.0175  #: Table 1 amplitude [m]
 EDGE = 0.8  #: smooth-square edge duration [s]
+#: The paper's indices E_p and E_rms cover this many reference periods at the end of a run.
+METRIC_PERIODS = 3
+
+
+def metric_window(period: float, Ts: float) -> int:
+    """Samples of the indices' window: the last :data:`METRIC_PERIODS` reference periods.
+
+    Parameters
+    ----------
+    period : float
+        Period of the reference [s].
+    Ts : float
+        Sampling period [s].
+
+    Returns
+    -------
+    int
+    """
+    return round(METRIC_PERIODS * period / Ts)
 
 
 def sine(t: np.ndarray, center: float, amplitude: float, freq: float) -> np.ndarray:
