@@ -8,7 +8,8 @@ TRIALS ?= 200
 
 .PHONY: demo test test-slow lint bench data clean-venv
 
-$(STAMP): pyproject.toml
+# the install also compiles the control law's C (control/law/c) into the library numba calls
+$(STAMP): pyproject.toml $(wildcard control/law/c/*.c control/law/c/*.h)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'

@@ -1,22 +1,28 @@
-"""The C99 control law (control/law/c: ptlaw.c, ptlaw.h, the generated pt_layout.h) against the
-compiled numba step (control/law/darc.py), back to back on the same measurement sequences.
+"""The C99 control law (control/law/c: ptlaw.c, ptlaw.h, the generated pt_layout.h) compiled the
+way a target compiles it, against the library the install built (which the simulator, tune and
+deploy call through the numba wrappers of control/law/darc.py), back to back on the same
+measurement sequences.
 
-The C is compiled once per session into a shared library with the flags the port promises to
-build cleanly under, loaded with ctypes and fed the very arrays numba is fed: the packed config
-(:func:`pneutune.control.law.layout.pack`), the flat state and measurement vectors.
+The law exists once, in C; tests/test_law_reference.py holds it to what it computed before it
+moved to C. Here a second build of the same sources, with exactly the strict flags the sources
+promise to compile cleanly under (``-std=c99 -Wall -Wextra -Wpedantic -Werror -O2``), loaded
+with ctypes, is fed the very arrays the installed law is fed: the packed config
+(:func:`pneutune.control.law.layout.pack`), the flat state and measurement vectors. A stale
+installed library (sources edited, not rebuilt) or build flags that change the arithmetic show
+here.
 
-Tolerances. The C performs numba's floating-point operations in numba's order, so it is expected
-to agree bit for bit, and does on x86-64 Linux (both call the process's libm for atan and pow).
-The comparisons still allow 1e-9 relative, plus an absolute floor of 1e-9 of the largest
+Tolerances. Both builds perform the same operations in the same order, so they are expected to
+agree bit for bit, and do on x86-64 Linux (both call the process's libm for atan and pow). The
+comparisons still allow 1e-9 relative, plus an absolute floor of 1e-9 of the largest
 magnitude the same state slot (or duty) takes over the sequence, for values near zero (e1, e2,
 e3, the θ̂ rates, off-diagonal covariances: a difference there carries the rounding of the
-operands' scale, not of the value itself). That is what a C built on another libm, or with
+operands' scale, not of the value itself). That is what a build on another libm, or with
 other roundings, needs: roundings that differ (one product of the Joseph update reassociated,
 or a build that fuses every multiply-add) grow through the filters and the loop to at most 1 %
 of this bound over these sequences, 5e-8 relative at worst on a value near zero.
 Integer-valued outputs (the Eq. (33) case, the step count, the dither's period index) must be
 equal, which the same bound enforces since they differ by at least 1 when they differ. NaN
-must sit where numba has NaN.
+must sit where the installed law has NaN.
 """
 
 from __future__ import annotations
@@ -145,7 +151,7 @@ class Run:
     states: np.ndarray
 
 
-def _replay_numba(vec: np.ndarray, meas: np.ndarray, state0: np.ndarray) -> Run:
+def _replay_installed(vec: np.ndarray, meas: np.ndarray, state0: np.ndarray) -> Run:
     n = meas.shape[0]
     run = Run(np.zeros(n, dtype=np.int64), np.zeros((n, 4)), np.zeros((n, STATE_SIZE)))
     state = state0.copy()
@@ -181,18 +187,20 @@ def _mismatch(ref: np.ndarray, got: np.ndarray) -> np.ndarray:
 
 
 def _assert_agree(label: str, ref: Run, got: Run) -> float:
-    """Case, duties and full state of ``got`` (C) equal ``ref`` (numba) at every step, within
-    RTOL and the floor; returns the largest relative difference seen (0 when bit for bit)."""
+    """Case, duties and full state of ``got`` (the strict build) equal ``ref`` (the installed
+    law) at every step, within RTOL and the floor; returns the largest relative difference
+    seen (0 when bit for bit)."""
     differ = np.flatnonzero(ref.cases != got.cases)
     assert differ.size == 0, (f"{label}: Eq. (33) case differs first at step {differ[0]}: "
-                              f"numba {ref.cases[differ[0]]}, C {got.cases[differ[0]]}")
+                              f"installed {ref.cases[differ[0]]}, "
+                              f"strict build {got.cases[differ[0]]}")
     worst = 0.0
     for what, a, b in (("duties", ref.duties, got.duties), ("state", ref.states, got.states)):
         bad = np.argwhere(_mismatch(a, b))
         if bad.size:
             k, j = bad[0]
             raise AssertionError(f"{label}: {what}[{j}] differs first at step {k}: "
-                                 f"numba {a[k, j]!r}, C {b[k, j]!r}")
+                                 f"installed {a[k, j]!r}, strict build {b[k, j]!r}")
         finite = np.isfinite(a) & np.isfinite(b) & (a != b)
         if finite.any():
             worst = max(worst, float(np.max(np.abs(a - b)[finite] / np.abs(a)[finite])))
@@ -255,8 +263,8 @@ def test_closed_loop_sequences_agree(c_law: CLaw, variant: str, dead_zone: str,
     """Each law configuration's own closed-loop measurements (two scenarios, both PWM update
     modes of the plant, 2.5 s each) replayed through both laws from equal initial states: case,
     duties and the full state vector agree at every step (tolerances: module docstring). The
-    numba replay reproduces the closed loop's duties exactly, so the sequences are what the loop
-    saw."""
+    replay through the installed law reproduces the closed loop's duties exactly, so the
+    sequences are what the loop saw."""
     seed = 1 + LAW_CASES.index((variant, dead_zone, position_feedback))
     cases_seen: set[int] = set()
     for pwm_update in PWM_UPDATES:
@@ -265,7 +273,7 @@ def test_closed_loop_sequences_agree(c_law: CLaw, variant: str, dead_zone: str,
         for name, meas, start, loop_duties in _closed_loop_meas(controller, pwm_update, seed):
             label = f"{variant}/{dead_zone}/{position_feedback} on {name}, {pwm_update}"
             state0 = _start(c_law, vec, *start)
-            ref = _replay_numba(vec, meas, state0)
+            ref = _replay_installed(vec, meas, state0)
             np.testing.assert_array_equal(ref.duties, loop_duties, err_msg=label)
             _assert_agree(label, ref, _replay_c(c_law, vec, meas, state0))
             cases_seen.update(np.unique(ref.cases).tolist())
@@ -325,7 +333,7 @@ def test_nan_and_extreme_measurements_agree(c_law: CLaw, realistic_meas: np.ndar
                                             position_feedback: str) -> None:
     """Every fault of :data:`FAULTS` (NaN, infinities, pressures out of range, time jumps) held
     for 3 steps in a realistic sequence, and 300 finite extreme samples: both laws agree at
-    every step, NaN where numba has NaN (tolerances: module docstring)."""
+    every step, NaN where the installed law has NaN (tolerances: module docstring)."""
     controller = _controller(variant, dead_zone, position_feedback)
     vec = pack(controller)
     x0 = float(realistic_meas[0, M_X])
@@ -335,10 +343,10 @@ def test_nan_and_extreme_measurements_agree(c_law: CLaw, realistic_meas: np.ndar
         for j, value in values.items():
             meas[30:33, j] = value
         label = f"{variant}/{dead_zone}/{position_feedback} with {what}"
-        _assert_agree(label, _replay_numba(vec, meas, state0),
+        _assert_agree(label, _replay_installed(vec, meas, state0),
                       _replay_c(c_law, vec, meas, state0))
     meas = _extreme_meas(seed=LAW_CASES.index((variant, dead_zone, position_feedback)))
-    ref = _replay_numba(vec, meas, state0)
+    ref = _replay_installed(vec, meas, state0)
     _assert_agree(f"{variant}/{dead_zone}/{position_feedback} on extreme samples", ref,
                   _replay_c(c_law, vec, meas, state0))
 
@@ -351,7 +359,7 @@ def test_wrong_layout(c_law: CLaw) -> None:
     bad = vec.copy()
     bad[CFG_LAYOUT] = 0.0
     meas = np.array([[0.0, 0.03, 3.0e5, 3.0e5, 6.0e5, 0.02, 0.05, 0.0]])
-    ref = _replay_numba(bad, meas, state0)
+    ref = _replay_installed(bad, meas, state0)
     got = _replay_c(c_law, bad, meas, state0)
     _assert_agree("wrong layout", ref, got)
     assert got.cases[0] == 0 and got.states[0, S_STATUS] == 1.0

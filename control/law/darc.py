@@ -1,7 +1,11 @@
 """The control law, once: modified DARC (Eqs. 9-36) and its variants, one compiled step.
 
-``step(state, meas, cfg) -> (state, duties)`` is the only implementation; the simulator, the
-tuner and the deploy runtime all call it (or :func:`step_into`, the zero-allocation form).
+The step is C99 (``control/law/c/ptlaw.c``, ``pt_step_into``): the same sources that
+``deploy --emit c`` gives a target, compiled by the install into the library numba calls
+(:mod:`pneutune.control.law.clib`). ``step(state, meas, cfg) -> (state, duties)`` and
+:func:`step_into` (the zero-allocation form, callable from compiled code) are its Python entry
+points; the simulator, the tuner and the deploy runtime all call them. The description below
+is of what the C computes; ``ptlaw.c`` follows it line by line.
 
 * ``state``: flat float64 vector, :data:`STATE_SIZE` long, fields at the ``S_*`` indices below
   (θ̂, both Kalman means and covariances, the previous F_pd and a_r, the PID integral, the logged
@@ -34,90 +38,33 @@ One step, every Ts (the names are the paper's):
 
 ``pid``: step 1 runs for v̂ and the logs; Q_Ld = -(kp e1 + ki ∫e1 + kd (v̂ - v_r)), then step 7.
 
-No allocation in :func:`step_into`, no Python objects, no exceptions (``error_model="numpy"``:
-a division by zero gives inf/nan, and a non-finite Q_Ld closes every valve, Eq. 33 case 3).
+No allocation in :func:`step_into`, no Python objects, no exceptions (IEEE arithmetic: a
+division by zero gives inf/nan, and a non-finite Q_Ld closes every valve, Eq. 33 case 3).
 """
 
 from __future__ import annotations
 
+import ctypes
 from typing import Any
 
 import numpy as np
 from numba import njit
 
 from pneutune.control.contracts.controller import (
-    DZ_DITHER,
-    ORIG_ACCEL_MODEL,
-    POS_FB_FILTERED,
     VARIANT_DIRECT_DIFF,
     VARIANT_MODIFIED_DARC,
     VARIANT_ORIGINAL_DARC,
     VARIANT_PID,
     ControllerConfig,
 )
-from pneutune.control.law.duty import dither_into, duties_into, fully_open_q_l
-from pneutune.control.law.kalman import kf_predict_into, kf_update_into
+from pneutune.control.law import clib
 from pneutune.control.law.layout import (
-    CFG_A_A,
-    CFG_A_B,
-    CFG_A_R,
-    CFG_DZ_DUTY,
-    CFG_DZ_MODE,
-    CFG_DZ_RATIO,
-    CFG_EPS2,
-    CFG_EPS3,
-    CFG_GAMMA,
-    CFG_H2,
-    CFG_H3,
-    CFG_K1,
-    CFG_K2,
-    CFG_K3,
-    CFG_KF_A,
-    CFG_KF_H,
-    CFG_KF_R,
-    CFG_KF_WQW,
-    CFG_KM_A,
-    CFG_KM_H,
-    CFG_KM_R,
-    CFG_KM_WQW,
     CFG_LAYOUT,
     CFG_LAYOUT_ID,
-    CFG_MIN_REF_SPEED,
-    CFG_N,
-    CFG_NR,
-    CFG_ORIG_ACCEL,
-    CFG_P0,
-    CFG_PID_IMAX,
-    CFG_PID_KD,
-    CFG_PID_KI,
-    CFG_PID_KP,
-    CFG_POS_FB,
-    CFG_PWM_DUTY,
-    CFG_PWM_N,
-    CFG_PWM_PERIOD,
-    CFG_PWM_RATIO,
-    CFG_R2,
-    CFG_R3,
-    CFG_RATE_MAX,
     CFG_SIZE,
-    CFG_T0,
-    CFG_THETA_0,
-    CFG_THETA_MAX,
-    CFG_THETA_MIN,
-    CFG_TS,
-    CFG_V0A,
-    CFG_V0B,
-    CFG_VALVE_B,
-    CFG_VALVE_C,
-    CFG_VARIANT,
-    CFG_X_MAX,
-    CFG_X_MIN,
-    PWM_STRIDE,
     pack,
 )
-from pneutune.control.law.projection import adapt_step_into
 from pneutune.control.logs.topics import topic_fields
-from pneutune.control.physics.friction import smooth_sign, smooth_sign_derivative
 
 # --- measurement vector ------------------------------------------------------------------------
 M_T, M_X, M_P_A, M_P_B, M_P_S, M_X_R, M_V_R, M_A_R = 0, 1, 2, 3, 4, 5, 6, 7
@@ -189,163 +136,7 @@ def step_into(state: np.ndarray, meas: np.ndarray, cfg: np.ndarray,
     int
         The Eq. (33) case (1..5), or 0 when ``cfg`` has another layout (all valves closed).
     """
-    if cfg[CFG_LAYOUT] != CFG_LAYOUT_ID:
-        for i in range(4):
-            duties_out[i] = 0.0
-        state[S_STATUS] = 1.0
-        return 0
-    variant = int(cfg[CFG_VARIANT])
-    first = state[S_N_STEPS] == 0.0
-    Ts = cfg[CFG_TS]
-    x_meas = meas[M_X]
-    p_a = meas[M_P_A]
-    p_b = meas[M_P_B]
-    p_s = meas[M_P_S]
-    x_r = meas[M_X_R]
-    v_r = meas[M_V_R]
-    a_r = meas[M_A_R]
-    work = state[S_WORK:S_WORK + 21]
-
-    # 1. motion filter, Eqs. (34)-(36)
-    mx = state[S_MX:S_MX + 3]
-    mp = state[S_MP:S_MP + 9]
-    kf_predict_into(mx, mp, cfg[CFG_KM_A:CFG_KM_A + 9].reshape((3, 3)),
-                    cfg[CFG_KM_WQW:CFG_KM_WQW + 9].reshape((3, 3)), work)
-    kf_update_into(mx, mp, x_meas, cfg[CFG_KM_H:CFG_KM_H + 3], cfg[CFG_KM_R], work)
-    x1 = mx[0] if int(cfg[CFG_POS_FB]) == POS_FB_FILTERED else x_meas
-    x2 = mx[1]
-
-    A_a = cfg[CFG_A_A]
-    A_b = cfg[CFG_A_B]
-    x_min = cfg[CFG_X_MIN]
-    x_max = cfg[CFG_X_MAX]
-    xc = min(max(x1, x_min), x_max)
-    V_a = cfg[CFG_V0A] + A_a * (xc - x_min)      # Eq. (6)
-    V_b = cfg[CFG_V0B] + A_b * (x_max - xc)
-    F_p = A_a * p_a - A_b * p_b - cfg[CFG_P0] * cfg[CFG_A_R]
-
-    # 2. step 1, Eqs. (13)-(17), (20)
-    k1 = cfg[CFG_K1]
-    e1 = x1 - x_r
-    e2 = x2 - (v_r - k1 * e1)
-    dx2eq = a_r - k1 * (x2 - v_r)
-
-    theta = state[S_THETA:S_THETA + 6]
-    tau = state[S_TAU:S_TAU + 6]
-    thdot = state[S_THETA_DOT:S_THETA_DOT + 6]
-    F_pd = 0.0
-    e3 = 0.0
-    dF_pd = 0.0
-    if variant == VARIANT_PID:
-        integral = state[S_PID_I] + Ts * e1
-        i_max = cfg[CFG_PID_IMAX]
-        integral = min(max(integral, -i_max), i_max)
-        state[S_PID_I] = integral
-        q_ld = -(cfg[CFG_PID_KP] * e1 + cfg[CFG_PID_KI] * integral
-                 + cfg[CFG_PID_KD] * (x2 - v_r))
-        for i in range(6):
-            tau[i] = 0.0
-            thdot[i] = 0.0
-    else:
-        th1 = theta[0]
-        th2 = theta[1]
-        th3 = theta[2]
-        th4 = theta[3]
-        th5 = theta[4]
-        th6 = theta[5]
-        sf = smooth_sign(x2)
-        kappa2 = cfg[CFG_K2] + cfg[CFG_H2] * cfg[CFG_H2] / (4.0 * cfg[CFG_EPS2])
-        F_pd = -th2 + th3 * x2 + th4 * sf + th1 * dx2eq - kappa2 * e2
-        e3 = F_p - F_pd
-
-        # 4. adaptation, Eqs. (9)-(11), (17), (26); only while |v_r| > min_ref_speed
-        r2e2 = cfg[CFG_R2] * e2
-        r3e3 = cfg[CFG_R3] * e3
-        tau[0] = -dx2eq * r2e2
-        tau[1] = r2e2
-        tau[2] = -x2 * r2e2
-        tau[3] = -sf * r2e2
-        tau[4] = A_a * r3e3
-        tau[5] = -A_b * r3e3
-        if abs(v_r) > cfg[CFG_MIN_REF_SPEED]:
-            adapt_step_into(theta, tau, cfg[CFG_GAMMA:CFG_GAMMA + 6],
-                            cfg[CFG_RATE_MAX:CFG_RATE_MAX + 6],
-                            cfg[CFG_THETA_MIN:CFG_THETA_MIN + 6],
-                            cfg[CFG_THETA_MAX:CFG_THETA_MAX + 6], Ts, thdot)
-        else:
-            for i in range(6):
-                thdot[i] = 0.0
-
-        # 5. dF_pd/dt
-        if variant == VARIANT_MODIFIED_DARC:
-            fx = state[S_FX:S_FX + 2]
-            fp = state[S_FP:S_FP + 4]
-            if first:
-                R_f = cfg[CFG_KF_R]
-                fx[0] = F_pd
-                fx[1] = 0.0
-                fp[0] = R_f
-                fp[1] = 0.0
-                fp[2] = 0.0
-                fp[3] = R_f / (Ts * Ts)
-            else:
-                kf_predict_into(fx, fp, cfg[CFG_KF_A:CFG_KF_A + 4].reshape((2, 2)),
-                                cfg[CFG_KF_WQW:CFG_KF_WQW + 4].reshape((2, 2)), work)
-                kf_update_into(fx, fp, F_pd, cfg[CFG_KF_H:CFG_KF_H + 2], cfg[CFG_KF_R], work)
-            dF_pd = fx[1]
-        elif variant == VARIANT_DIRECT_DIFF:
-            dF_pd = 0.0 if first else (F_pd - state[S_F_PD_PREV]) / Ts
-        elif variant == VARIANT_ORIGINAL_DARC:
-            j_r = 0.0 if first else (a_r - state[S_A_R_PREV]) / Ts
-            dsf = smooth_sign_derivative(x2)
-            dF_dx1 = -kappa2 * k1
-            dF_dx2 = th3 + th4 * dsf - th1 * k1 - kappa2
-            if int(cfg[CFG_ORIG_ACCEL]) == ORIG_ACCEL_MODEL:
-                dx2 = (F_p + th2 - th3 * x2 - th4 * sf) / th1
-            else:
-                dx2 = mx[2]
-            dF_dt = th1 * (j_r + k1 * a_r) + kappa2 * (a_r + k1 * v_r)
-            dF_dth = dx2eq * thdot[0] - thdot[1] + x2 * thdot[2] + sf * thdot[3]
-            dF_pd = dF_dx1 * x2 + dF_dx2 * dx2 + dF_dt + dF_dth
-
-        # 6. step 2, Eqs. (26), (29)
-        n = cfg[CFG_N]
-        q_lda = (-e2 * cfg[CFG_R2] / cfg[CFG_R3] + n * A_a * A_a * x2 * p_a / V_a
-                 + n * A_b * A_b * x2 * p_b / V_b - A_a * th5 + A_b * th6 + dF_pd)
-        kappa3 = cfg[CFG_K3] + cfg[CFG_H3] * cfg[CFG_H3] / (4.0 * cfg[CFG_EPS3])
-        q_ld = q_lda - kappa3 * e3
-
-    # 7. step 3, Eqs. (32)-(33) and the PWM inverse
-    q_lf = fully_open_q_l(q_ld, p_a, p_b, p_s, cfg[CFG_P0], cfg[CFG_T0], cfg[CFG_NR], A_a, A_b,
-                          V_a, V_b, cfg[CFG_VALVE_C:CFG_VALVE_C + 4],
-                          cfg[CFG_VALVE_B:CFG_VALVE_B + 4])
-    case = duties_into(q_ld, q_lf, cfg[CFG_PWM_N:CFG_PWM_N + 4],
-                       cfg[CFG_PWM_DUTY:CFG_PWM_DUTY + 4 * PWM_STRIDE],
-                       cfg[CFG_PWM_RATIO:CFG_PWM_RATIO + 4 * PWM_STRIDE], PWM_STRIDE,
-                       state[S_U:S_U + 4], duties_out)
-    if int(cfg[CFG_DZ_MODE]) == DZ_DITHER:
-        dither_into(state[S_U:S_U + 4], duties_out, meas[M_T], Ts, cfg[CFG_PWM_PERIOD],
-                    cfg[CFG_DZ_DUTY:CFG_DZ_DUTY + 4], cfg[CFG_DZ_RATIO:CFG_DZ_RATIO + 4],
-                    state[S_DZ_ACC:S_DZ_ACC + 4],
-                    state[S_DZ_PULSE:S_DZ_PULSE + 4], state[S_DZ_PERIOD:S_DZ_PERIOD + 1])
-
-    state[S_F_PD_PREV] = F_pd
-    state[S_A_R_PREV] = a_r
-    state[S_N_STEPS] += 1.0
-    state[S_STATUS] = 0.0
-    state[S_E1] = e1
-    state[S_E2] = e2
-    state[S_E3] = e3
-    state[S_X_HAT] = mx[0]
-    state[S_V_HAT] = mx[1]
-    state[S_A_HAT] = mx[2]
-    state[S_F_PD] = F_pd
-    state[S_DF_PD] = dF_pd
-    state[S_Q_LD] = q_ld
-    state[S_Q_LF] = q_lf
-    state[S_CASE] = case
-    state[S_F_P] = F_p
-    return case
+    return clib.pt_step_into(state.ctypes, meas.ctypes, cfg.ctypes, duties_out.ctypes)
 
 
 @njit(cache=True, error_model="numpy")
@@ -400,19 +191,11 @@ def init_state(cfg: ControllerConfig | np.ndarray, x0: float, p_a0: float,
     if v.shape != (CFG_SIZE,) or v[CFG_LAYOUT] != CFG_LAYOUT_ID:
         raise ValueError(f"cfg must be a ControllerConfig or a vector from pack() "
                          f"(length {CFG_SIZE}), got shape {v.shape}")
+    v = np.ascontiguousarray(v)
     s = np.zeros(STATE_SIZE)
-    s[S_THETA:S_THETA + 6] = v[CFG_THETA_0:CFG_THETA_0 + 6]
-    Ts, R = v[CFG_TS], v[CFG_KM_R]
-    s[S_MX:S_MX + 3] = (x0, 0.0, 0.0)
-    s[S_MP:S_MP + 9] = np.diag([R, R / Ts**2, R / Ts**4]).ravel()
-    F_p0 = v[CFG_A_A] * p_a0 - v[CFG_A_B] * p_b0 - v[CFG_P0] * v[CFG_A_R]
-    s[S_FX] = F_p0
-    s[S_F_P] = F_p0
-    s[S_F_PD] = F_p0
-    s[S_F_PD_PREV] = F_p0
-    s[S_X_HAT] = x0
-    s[S_DZ_ACC:S_DZ_ACC + 4] = 0.5 * v[CFG_DZ_RATIO:CFG_DZ_RATIO + 4]  # as after a closed valve
-    s[S_DZ_PERIOD] = -1.0
+    ptr = ctypes.POINTER(ctypes.c_double)
+    clib.LIB.pt_init_state(s.ctypes.data_as(ptr), v.ctypes.data_as(ptr), float(x0), float(p_a0),
+                           float(p_b0))
     return s
 
 

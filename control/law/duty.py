@@ -1,4 +1,8 @@
-"""From the desired flow Q_Ld to the four valve duties: Eqs. (32)-(33) and the PWM inverse (numba).
+"""From the desired flow Q_Ld to the four valve duties: Eqs. (32)-(33) and the PWM inverse.
+
+The kernels are the C of ``control/law/c/ptlaw.c`` (``pt_fully_open_q_l``, ``pt_eq33_into``,
+``pt_pwm_inverse``, ``pt_duties_into``, ``pt_dither_into``), called through
+:mod:`pneutune.control.law.clib`; :func:`dead_zone_knee` is the Python that packs the knees.
 
 Eq. (32), as corrected (docs/controller.md)
     Q_L,F is the virtual input Q_L of Eq. (25) with the two valves of the active mode fully open,
@@ -63,7 +67,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pneutune.control.physics.flow import iso6358_flow
+from pneutune.control.law import clib
 
 #: A segment of the PWM curve is part of the dead-zone rise when it is at least this many times
 #: steeper than the chord from (0, 0) to the curve's top (:func:`dead_zone_knee`).
@@ -112,15 +116,8 @@ def fully_open_q_l(q_ld: float, p_a: float, p_b: float, p_s: float, p0: float, T
     float
         Q_L,F >= 0 [N/s].
     """
-    if q_ld > 0.0:
-        m_a = iso6358_flow(C[0], b[0], p_s, p_a, T0)
-        m_b = iso6358_flow(C[3], b[3], p_b, p0, T0)
-    elif q_ld < 0.0:
-        m_a = iso6358_flow(C[1], b[1], p_a, p0, T0)
-        m_b = iso6358_flow(C[2], b[2], p_s, p_b, T0)
-    else:
-        return 0.0
-    return nR * T0 * (A_a * m_a / V_a + A_b * m_b / V_b)
+    return clib.pt_fully_open_q_l(q_ld, p_a, p_b, p_s, p0, T0, nR, A_a, A_b, V_a, V_b, C.ctypes,
+                                  b.ctypes)
 
 
 @njit(cache=True, error_model="numpy")
@@ -141,29 +138,7 @@ def eq33_into(q_ld: float, q_lf: float, u_out: np.ndarray) -> int:
     int
         The case, 1..5 (:data:`CASE_NAMES`).
     """
-    for i in range(4):
-        u_out[i] = 0.0
-    if q_ld > 0.0:
-        if q_lf > 0.0:
-            r = q_ld / q_lf
-            u = 1.0 if r > 1.0 else r
-            u_out[0] = u
-            u_out[3] = u
-            return CASE_A_FILL
-        u_out[0] = 1.0
-        u_out[3] = 1.0
-        return CASE_A_FILL_NO_FLOW
-    if q_ld < 0.0:
-        if q_lf > 0.0:
-            r = -q_ld / q_lf
-            u = 1.0 if r > 1.0 else r
-            u_out[1] = u
-            u_out[2] = u
-            return CASE_B_FILL
-        u_out[1] = 1.0
-        u_out[2] = 1.0
-        return CASE_B_FILL_NO_FLOW
-    return CASE_CLOSED
+    return clib.pt_eq33_into(q_ld, q_lf, u_out.ctypes)
 
 
 @njit(cache=True, error_model="numpy")
@@ -184,24 +159,7 @@ def pwm_inverse(ratio: float, duty_pts: np.ndarray, ratio_pts: np.ndarray) -> fl
         Duty in [0, 1]: 0 for ``ratio <= 0``; linear interpolation on the first segment that
         reaches ``ratio``; 1 for a ratio at or above the curve's top (module docstring).
     """
-    if not ratio > 0.0:
-        return 0.0
-    m = duty_pts.shape[0]
-    top = ratio_pts[m - 1]
-    if not top > 0.0:
-        return 0.0
-    if ratio >= top:
-        return 1.0
-    for i in range(1, m):
-        r1 = ratio_pts[i]
-        if r1 >= ratio:
-            r0 = ratio_pts[i - 1]
-            d0 = duty_pts[i - 1]
-            d1 = duty_pts[i]
-            if r1 == ratio:
-                return d1
-            return d0 + (ratio - r0) / (r1 - r0) * (d1 - d0)
-    return duty_pts[m - 1]
+    return clib.pt_pwm_inverse(ratio, duty_pts.ctypes, ratio_pts.ctypes, duty_pts.shape[0])
 
 
 @njit(cache=True, error_model="numpy")
@@ -230,12 +188,8 @@ def duties_into(q_ld: float, q_lf: float, n_pts: np.ndarray, duty_pts: np.ndarra
     int
         The Eq. (33) case, 1..5.
     """
-    case = eq33_into(q_ld, q_lf, u_work)
-    for i in range(4):
-        at = i * stride
-        m = int(n_pts[i])
-        duties_out[i] = pwm_inverse(u_work[i], duty_pts[at:at + m], ratio_pts[at:at + m])
-    return case
+    return clib.pt_duties_into(q_ld, q_lf, n_pts.ctypes, duty_pts.ctypes, ratio_pts.ctypes,
+                               stride, u_work.ctypes, duties_out.ctypes)
 
 
 def dead_zone_knee(duty_pts: np.ndarray, ratio_pts: np.ndarray) -> tuple[float, float]:
@@ -313,30 +267,5 @@ def dither_into(u: np.ndarray, duties: np.ndarray, t: float, Ts: float, period: 
         Index of the last carrier period decided; updated. Before the first, -1 and every
         accumulator at ``r_k / 2`` (:func:`pneutune.control.law.darc.init_state`).
     """
-    n_next = np.floor((t + Ts) / period - 1.0e-9)
-    m = n_next - last[0]
-    if m > 0.0:
-        if last[0] < 0.0:  # the first decision (init_state set acc as after a closed valve)
-            m = 1.0
-        last[0] = n_next
-        for i in range(4):
-            ui = u[i]
-            rk = r_k[i]
-            if not rk > 0.0:
-                continue
-            if not ui > 0.0:
-                acc[i] = 0.5 * rk
-                pulse[i] = 0.0
-            elif ui >= rk:
-                pulse[i] = 1.0
-            else:
-                acc[i] += m * ui
-                if acc[i] >= 0.5 * m * rk:
-                    pulse[i] = 1.0
-                    acc[i] -= m * rk
-                else:
-                    pulse[i] = 0.0
-    for i in range(4):
-        ui = u[i]
-        if ui > 0.0 and ui < r_k[i]:
-            duties[i] = d_k[i] if pulse[i] > 0.5 else 0.0
+    clib.pt_dither_into(u.ctypes, duties.ctypes, t, Ts, period, d_k.ctypes, r_k.ctypes,
+                        acc.ctypes, pulse.ctypes, last.ctypes)

@@ -1,4 +1,4 @@
-"""Kalman filters of Sec. 4: a pure numba core and a thin class over it.
+"""Kalman filters of Sec. 4: the C core (``control/law/c/ptlaw.c``) and the models around it.
 
 Model (Eq. 34)::
 
@@ -26,13 +26,17 @@ Layout of the core: the in-place kernels :func:`kf_predict_into` and :func:`kf_u
 the state mean ``x`` (n) and the covariance ``P`` *flattened row-major* (n*n) plus a scratch
 buffer, so that the DARC step can run them on slices of its flat state vector without allocating.
 :func:`kf_predict` and :func:`kf_update` are the pure (allocating) forms with a 2-D ``P``;
-:class:`KalmanFilter` is a thin class over them. These are the only copy of Eqs. (35)-(36).
+:class:`KalmanFilter` is a thin class over them. The in-place kernels call ``pt_kf_predict_into``
+and ``pt_kf_update_into`` of ``ptlaw.c`` (:mod:`pneutune.control.law.clib`), the only copy of
+Eqs. (35)-(36).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from pneutune.control.law import clib
 
 
 def work_size(n: int) -> int:
@@ -58,29 +62,8 @@ def kf_predict_into(x: np.ndarray, Pf: np.ndarray, A: np.ndarray, WQWt: np.ndarr
     work : (>= n*n + n,) float64
         Scratch; its content on return is meaningless.
     """
-    n = x.shape[0]
-    # x <- A x (through the scratch: x is read while written)
-    for i in range(n):
-        s = 0.0
-        for j in range(n):
-            s += A[i, j] * x[j]
-        work[i] = s
-    for i in range(n):
-        x[i] = work[i]
-    # T = A P  (n*n in work[n:])
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += A[i, k] * Pf[k * n + j]
-            work[n + i * n + j] = s
-    # P <- T A^T + WQWt
-    for i in range(n):
-        for j in range(n):
-            s = WQWt[i, j]
-            for k in range(n):
-                s += work[n + i * n + k] * A[j, k]
-            Pf[i * n + j] = s
+    clib.pt_kf_predict_into(x.ctypes, Pf.ctypes, A.ctypes, WQWt.ctypes, work.ctypes,
+                            x.shape[0])
 
 
 @njit(cache=True, error_model="numpy")
@@ -103,40 +86,7 @@ def kf_update_into(x: np.ndarray, Pf: np.ndarray, z: float, H: np.ndarray, R: fl
     work : (>= 2 n^2 + n,) float64
         Scratch. On return ``work[:n]`` holds the Kalman gain K of this update.
     """
-    n = x.shape[0]
-    # K = P H^T / S, S = H P H^T + R  (K in work[:n])
-    S = R
-    for i in range(n):
-        s = 0.0
-        for j in range(n):
-            s += Pf[i * n + j] * H[j]
-        work[i] = s
-        S += H[i] * s
-    innov = z
-    for i in range(n):
-        innov -= H[i] * x[i]
-    for i in range(n):
-        work[i] = work[i] / S
-        x[i] += work[i] * innov
-    # M = I - K H (work[n : n + n*n]); T = M P (work[n + n*n : n + 2 n*n])
-    m0 = n
-    t0 = n + n * n
-    for i in range(n):
-        for j in range(n):
-            work[m0 + i * n + j] = (1.0 if i == j else 0.0) - work[i] * H[j]
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += work[m0 + i * n + k] * Pf[k * n + j]
-            work[t0 + i * n + j] = s
-    # P <- T M^T + K R K^T
-    for i in range(n):
-        for j in range(n):
-            s = work[i] * R * work[j]
-            for k in range(n):
-                s += work[t0 + i * n + k] * work[m0 + j * n + k]
-            Pf[i * n + j] = s
+    clib.pt_kf_update_into(x.ctypes, Pf.ctypes, z, H.ctypes, R, work.ctypes, x.shape[0])
 
 
 @njit(cache=True, error_model="numpy")

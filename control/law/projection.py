@@ -1,4 +1,5 @@
-"""Rate-limited discontinuous projection, Eqs. (9)-(11), and its discrete-time update (numba).
+"""Rate-limited discontinuous projection, Eqs. (9)-(11), and its discrete-time update (the C
+of ``control/law/c/ptlaw.c``, called through :mod:`pneutune.control.law.clib`).
 
 Continuous time (the paper)::
 
@@ -26,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pneutune.control.law import clib
+
 
 @njit(cache=True, error_model="numpy")
 def proj_into(theta_hat: np.ndarray, v: np.ndarray, theta_min: np.ndarray,
@@ -43,27 +46,14 @@ def proj_into(theta_hat: np.ndarray, v: np.ndarray, theta_min: np.ndarray,
     out : (n,) float64
         Receives Proj_θ̂(v); may be ``v`` itself.
     """
-    for i in range(theta_hat.shape[0]):
-        vi = v[i]
-        if (theta_hat[i] >= theta_max[i] and vi > 0.0) or (theta_hat[i] <= theta_min[i]
-                                                           and vi < 0.0):
-            out[i] = 0.0
-        else:
-            out[i] = vi
+    clib.pt_proj_into(theta_hat.ctypes, v.ctypes, theta_min.ctypes, theta_max.ctypes,
+                      out.ctypes, theta_hat.shape[0])
 
 
 @njit(cache=True, error_model="numpy")
 def sat_into(v: np.ndarray, rate_max: np.ndarray, out: np.ndarray) -> None:
     """Rate saturation of Eq. (11), elementwise: clip ``v_i`` to [-θ̇Mi, θ̇Mi]."""
-    for i in range(v.shape[0]):
-        vi = v[i]
-        m = rate_max[i]
-        if vi > m:
-            out[i] = m
-        elif vi < -m:
-            out[i] = -m
-        else:
-            out[i] = vi
+    clib.pt_sat_into(v.ctypes, rate_max.ctypes, out.ctypes, v.shape[0])
 
 
 @njit(cache=True, error_model="numpy")
@@ -87,10 +77,9 @@ def adaptation_rate_into(theta_hat: np.ndarray, tau: np.ndarray, gamma: np.ndarr
     out : (n,) float64
         Receives dθ̂/dt.
     """
-    for i in range(theta_hat.shape[0]):
-        out[i] = gamma[i] * tau[i]
-    proj_into(theta_hat, out, theta_min, theta_max, out)
-    sat_into(out, rate_max, out)
+    clib.pt_adaptation_rate_into(theta_hat.ctypes, tau.ctypes, gamma.ctypes, rate_max.ctypes,
+                                 theta_min.ctypes, theta_max.ctypes, out.ctypes,
+                                 theta_hat.shape[0])
 
 
 @njit(cache=True, error_model="numpy")
@@ -110,16 +99,9 @@ def adapt_step_into(theta_hat: np.ndarray, tau: np.ndarray, gamma: np.ndarray,
     rate_out : (n,) float64
         Receives the effective rate ``(θ̂_new - θ̂_old) / Ts`` (units of θ per second).
     """
-    adaptation_rate_into(theta_hat, tau, gamma, rate_max, theta_min, theta_max, rate_out)
-    for i in range(theta_hat.shape[0]):
-        old = theta_hat[i]
-        new = old + Ts * rate_out[i]
-        if new > theta_max[i]:
-            new = theta_max[i]
-        elif new < theta_min[i]:
-            new = theta_min[i]
-        theta_hat[i] = new
-        rate_out[i] = (new - old) / Ts
+    clib.pt_adapt_step_into(theta_hat.ctypes, tau.ctypes, gamma.ctypes, rate_max.ctypes,
+                            theta_min.ctypes, theta_max.ctypes, Ts, rate_out.ctypes,
+                            theta_hat.shape[0])
 
 
 def adaptation_rate(theta_hat: np.ndarray, tau: np.ndarray, gamma: np.ndarray,

@@ -96,10 +96,10 @@ static pt_real iso6358_flow(pt_real C, pt_real b, pt_real p_u, pt_real p_d, pt_r
 
 /* --- control/law/kalman.py ------------------------------------------------------------- */
 
-/* kf_predict_into: time update of Eq. (35) in place, x <- A x, P <- A P A^T + W Q W^T, for n
+/* pt_kf_predict_into: time update of Eq. (35) in place, x <- A x, P <- A P A^T + W Q W^T, for n
  * states; A and WQWt row-major n x n, Pf the covariance row-major; work >= n*n + n. */
-static void kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real *WQWt,
-                            pt_real *work, int n)
+void pt_kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real *WQWt,
+                        pt_real *work, int n)
 {
     int i, j, k;
     pt_real s;
@@ -136,10 +136,10 @@ static void kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_
     }
 }
 
-/* kf_update_into: measurement update of Eq. (36) in Joseph form, in place, for the scalar
+/* pt_kf_update_into: measurement update of Eq. (36) in Joseph form, in place, for the scalar
  * measurement z = H x + v, E[v^2] = R; work >= 2 n*n + n, work[:n] = the gain K on return. */
-static void kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_real R,
-                           pt_real *work, int n)
+void pt_kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_real R,
+                       pt_real *work, int n)
 {
     int i, j, k;
     int m0 = n;
@@ -192,39 +192,64 @@ static void kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H,
 
 /* --- control/law/projection.py --------------------------------------------------------- */
 
-/* adapt_step_into: theta <- clip(theta + Ts sat(Proj(Gamma tau)), theta_min, theta_max),
- * Eqs. (9)-(11) with Eq. (10)'s = as >= / <=; rate_out receives the effective rate
- * (theta_new - theta_old) / Ts. The three loops are adaptation_rate_into (Gamma tau),
- * proj_into (Eq. 10) and sat_into (Eq. 11). */
-static void adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
-                            const pt_real *rate_max, const pt_real *theta_min,
-                            const pt_real *theta_max, pt_real Ts, pt_real *rate_out, int n)
+/* pt_proj_into: the discontinuous projection of Eq. (10), elementwise (= as >= / <=);
+ * out may be v itself. */
+void pt_proj_into(const pt_real *theta_hat, const pt_real *v, const pt_real *theta_min,
+                  const pt_real *theta_max, pt_real *out, int n)
 {
     int i;
-    pt_real vi, m, old, new_;
+    pt_real vi;
     for (i = 0; i < n; ++i) {
-        rate_out[i] = gamma[i] * tau[i];
-    }
-    for (i = 0; i < n; ++i) {
-        vi = rate_out[i];
+        vi = v[i];
         if ((theta_hat[i] >= theta_max[i] && vi > PT_C(0.0))
             || (theta_hat[i] <= theta_min[i] && vi < PT_C(0.0))) {
-            rate_out[i] = PT_C(0.0);
+            out[i] = PT_C(0.0);
         } else {
-            rate_out[i] = vi;
+            out[i] = vi;
         }
     }
+}
+
+/* pt_sat_into: the rate saturation of Eq. (11), elementwise; out may be v itself. */
+void pt_sat_into(const pt_real *v, const pt_real *rate_max, pt_real *out, int n)
+{
+    int i;
+    pt_real vi, m;
     for (i = 0; i < n; ++i) {
-        vi = rate_out[i];
+        vi = v[i];
         m = rate_max[i];
         if (vi > m) {
-            rate_out[i] = m;
+            out[i] = m;
         } else if (vi < -m) {
-            rate_out[i] = -m;
+            out[i] = -m;
         } else {
-            rate_out[i] = vi;
+            out[i] = vi;
         }
     }
+}
+
+/* pt_adaptation_rate_into: the adaptation law of Eq. (9), out = sat(Proj(Gamma tau)). */
+void pt_adaptation_rate_into(const pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                             const pt_real *rate_max, const pt_real *theta_min,
+                             const pt_real *theta_max, pt_real *out, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        out[i] = gamma[i] * tau[i];
+    }
+    pt_proj_into(theta_hat, out, theta_min, theta_max, out, n);
+    pt_sat_into(out, rate_max, out, n);
+}
+
+/* pt_adapt_step_into: theta <- clip(theta + Ts sat(Proj(Gamma tau)), theta_min, theta_max);
+ * rate_out receives the effective rate (theta_new - theta_old) / Ts. */
+void pt_adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                        const pt_real *rate_max, const pt_real *theta_min,
+                        const pt_real *theta_max, pt_real Ts, pt_real *rate_out, int n)
+{
+    int i;
+    pt_real old, new_;
+    pt_adaptation_rate_into(theta_hat, tau, gamma, rate_max, theta_min, theta_max, rate_out, n);
     for (i = 0; i < n; ++i) {
         old = theta_hat[i];
         new_ = old + Ts * rate_out[i];
@@ -240,11 +265,11 @@ static void adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_rea
 
 /* --- control/law/duty.py --------------------------------------------------------------- */
 
-/* fully_open_q_l: Q_L,F of Eq. (32) (corrected) for the mode of the sign of q_ld [N/s], with
+/* pt_fully_open_q_l: Q_L,F of Eq. (32) (corrected) for the mode of the sign of q_ld [N/s], with
  * C and b of a_in, a_out, b_in, b_out. */
-static pt_real fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, pt_real p0,
-                              pt_real T0, pt_real nR, pt_real A_a, pt_real A_b, pt_real V_a,
-                              pt_real V_b, const pt_real *C, const pt_real *b)
+pt_real pt_fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, pt_real p0,
+                          pt_real T0, pt_real nR, pt_real A_a, pt_real A_b, pt_real V_a,
+                          pt_real V_b, const pt_real *C, const pt_real *b)
 {
     pt_real m_a, m_b;
     if (q_ld > PT_C(0.0)) {
@@ -259,9 +284,9 @@ static pt_real fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_
     return nR * T0 * (A_a * m_a / V_a + A_b * m_b / V_b);
 }
 
-/* eq33_into: the five cases of Eq. (33) (corrected), effective open fractions of the four
+/* pt_eq33_into: the five cases of Eq. (33) (corrected), effective open fractions of the four
  * valves in u_out; returns the case 1..5 (a NaN q_ld is case 3, all closed). */
-static int eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
+int pt_eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
 {
     int i;
     pt_real r, u;
@@ -295,10 +320,9 @@ static int eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
     return PT_CASE_CLOSED;
 }
 
-/* pwm_inverse: the smallest duty whose effective open fraction on the curve
+/* pt_pwm_inverse: the smallest duty whose effective open fraction on the curve
  * (duty_pts[:m], ratio_pts[:m]) reaches ratio: 0 for ratio <= 0, 1 at or above the top. */
-static pt_real pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ratio_pts,
-                           long m)
+pt_real pt_pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ratio_pts, long m)
 {
     long i;
     pt_real top, r0, r1, d0, d1;
@@ -332,16 +356,15 @@ static pt_real pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real
     return duty_pts[m - 1];
 }
 
-/* duties_into: Eq. (33) then each valve's PWM inverse on its own curve (valve i's from
+/* pt_duties_into: Eq. (33) then each valve's PWM inverse on its own curve (valve i's from
  * i * stride in duty_pts, ratio_pts, 4 * stride long); u_work receives the fractions. */
-static int duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_real *duty_pts,
-                       const pt_real *ratio_pts, long stride, pt_real *u_work,
-                       pt_real *duties_out)
+int pt_duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_real *duty_pts,
+                   const pt_real *ratio_pts, long stride, pt_real *u_work, pt_real *duties_out)
 {
     int i;
     long at, avail, m;
     pt_real v;
-    int c = eq33_into(q_ld, q_lf, u_work);
+    int c = pt_eq33_into(q_ld, q_lf, u_work);
     for (i = 0; i < 4; ++i) {
         at = i * stride;
         avail = 4 * stride - at;
@@ -354,16 +377,16 @@ static int duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const p
         } else {
             m = 0;
         }
-        duties_out[i] = pwm_inverse(u_work[i], duty_pts + at, ratio_pts + at, m);
+        duties_out[i] = pt_pwm_inverse(u_work[i], duty_pts + at, ratio_pts + at, m);
     }
     return c;
 }
 
-/* dither_into: dead-zone dithering, a first-order sigma-delta per valve deciding once per PWM
+/* pt_dither_into: dead-zone dithering, a first-order sigma-delta per valve deciding once per PWM
  * carrier period whether a valve with 0 < u < r_k gets the knee's pulse d_k or 0. */
-static void dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt_real period,
-                        const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
-                        pt_real *last)
+void pt_dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt_real period,
+                    const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
+                    pt_real *last)
 {
     int i;
     pt_real ui, rk;
@@ -453,8 +476,8 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
     /* 1. motion filter, Eqs. (34)-(36) */
     mx = state + PT_S_MX;
     mp = state + PT_S_MP;
-    kf_predict_into(mx, mp, cfg + PT_CFG_KM_A, cfg + PT_CFG_KM_WQW, work, 3);
-    kf_update_into(mx, mp, x_meas, cfg + PT_CFG_KM_H, cfg[PT_CFG_KM_R], work, 3);
+    pt_kf_predict_into(mx, mp, cfg + PT_CFG_KM_A, cfg + PT_CFG_KM_WQW, work, 3);
+    pt_kf_update_into(mx, mp, x_meas, cfg + PT_CFG_KM_H, cfg[PT_CFG_KM_R], work, 3);
     x1 = code(cfg[PT_CFG_POS_FB]) == PT_POS_FB_FILTERED ? mx[0] : x_meas;
     x2 = mx[1];
 
@@ -513,7 +536,7 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
         tau[4] = A_a * r3e3;
         tau[5] = -A_b * r3e3;
         if (PT_FABS(v_r) > cfg[PT_CFG_MIN_REF_SPEED]) {
-            adapt_step_into(theta, tau, cfg + PT_CFG_GAMMA, cfg + PT_CFG_RATE_MAX,
+            pt_adapt_step_into(theta, tau, cfg + PT_CFG_GAMMA, cfg + PT_CFG_RATE_MAX,
                             cfg + PT_CFG_THETA_MIN, cfg + PT_CFG_THETA_MAX, Ts, thdot, 6);
         } else {
             for (i = 0; i < 6; ++i) {
@@ -534,8 +557,8 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
                 fp[2] = PT_C(0.0);
                 fp[3] = R_f / (Ts * Ts);
             } else {
-                kf_predict_into(fx, fp, cfg + PT_CFG_KF_A, cfg + PT_CFG_KF_WQW, work, 2);
-                kf_update_into(fx, fp, F_pd, cfg + PT_CFG_KF_H, cfg[PT_CFG_KF_R], work, 2);
+                pt_kf_predict_into(fx, fp, cfg + PT_CFG_KF_A, cfg + PT_CFG_KF_WQW, work, 2);
+                pt_kf_update_into(fx, fp, F_pd, cfg + PT_CFG_KF_H, cfg[PT_CFG_KF_R], work, 2);
             }
             dF_pd = fx[1];
         } else if (variant == PT_VARIANT_DIRECT_DIFF) {
@@ -564,12 +587,12 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
     }
 
     /* 7. step 3, Eqs. (32)-(33) and the PWM inverse */
-    q_lf = fully_open_q_l(q_ld, p_a, p_b, p_s, cfg[PT_CFG_P0], cfg[PT_CFG_T0], cfg[PT_CFG_NR],
+    q_lf = pt_fully_open_q_l(q_ld, p_a, p_b, p_s, cfg[PT_CFG_P0], cfg[PT_CFG_T0], cfg[PT_CFG_NR],
                           A_a, A_b, V_a, V_b, cfg + PT_CFG_VALVE_C, cfg + PT_CFG_VALVE_B);
-    c = duties_into(q_ld, q_lf, cfg + PT_CFG_PWM_N, cfg + PT_CFG_PWM_DUTY, cfg + PT_CFG_PWM_RATIO,
+    c = pt_duties_into(q_ld, q_lf, cfg + PT_CFG_PWM_N, cfg + PT_CFG_PWM_DUTY, cfg + PT_CFG_PWM_RATIO,
                     PT_PWM_STRIDE, state + PT_S_U, duties_out);
     if (code(cfg[PT_CFG_DZ_MODE]) == PT_DZ_DITHER) {
-        dither_into(state + PT_S_U, duties_out, meas[PT_M_T], Ts, cfg[PT_CFG_PWM_PERIOD],
+        pt_dither_into(state + PT_S_U, duties_out, meas[PT_M_T], Ts, cfg[PT_CFG_PWM_PERIOD],
                     cfg + PT_CFG_DZ_DUTY, cfg + PT_CFG_DZ_RATIO, state + PT_S_DZ_ACC,
                     state + PT_S_DZ_PULSE, state + PT_S_DZ_PERIOD);
     }

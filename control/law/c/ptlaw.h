@@ -43,6 +43,44 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
  * untouched when cfg has another layout (where init_state raises ValueError). */
 int pt_init_state(pt_real *state, const pt_real *cfg, pt_real x0, pt_real p_a0, pt_real p_b0);
 
+/* The kernels the step is made of, exported for the host's tests and its Python wrappers
+ * (control/law/kalman.py, projection.py, duty.py); a target needs only the two above. */
+
+/* Eq. (35): x <- A x, P <- A P A^T + W Q W^T for n states (row-major); work >= n*n + n. */
+void pt_kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real *WQWt,
+                        pt_real *work, int n);
+/* Eq. (36) in Joseph form for a scalar z = H x + v, E[v^2] = R; work >= 2 n*n + n. */
+void pt_kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_real R,
+                       pt_real *work, int n);
+/* Eq. (10), elementwise; out may be v. */
+void pt_proj_into(const pt_real *theta_hat, const pt_real *v, const pt_real *theta_min,
+                  const pt_real *theta_max, pt_real *out, int n);
+/* Eq. (11), elementwise; out may be v. */
+void pt_sat_into(const pt_real *v, const pt_real *rate_max, pt_real *out, int n);
+/* Eq. (9): out = sat(Proj(Gamma tau)). */
+void pt_adaptation_rate_into(const pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                             const pt_real *rate_max, const pt_real *theta_min,
+                             const pt_real *theta_max, pt_real *out, int n);
+/* theta <- clip(theta + Ts sat(Proj(Gamma tau))); rate_out the effective rate. */
+void pt_adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                        const pt_real *rate_max, const pt_real *theta_min,
+                        const pt_real *theta_max, pt_real Ts, pt_real *rate_out, int n);
+/* Q_L,F of Eq. (32) (corrected) for the mode of the sign of q_ld. */
+pt_real pt_fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, pt_real p0,
+                          pt_real T0, pt_real nR, pt_real A_a, pt_real A_b, pt_real V_a,
+                          pt_real V_b, const pt_real *C, const pt_real *b);
+/* The five cases of Eq. (33) (corrected); returns the case 1..5. */
+int pt_eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out);
+/* The smallest duty whose open fraction on the m-point curve reaches ratio. */
+pt_real pt_pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ratio_pts, long m);
+/* Eq. (33) then each valve's PWM inverse (valve i's curve from i * stride). */
+int pt_duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_real *duty_pts,
+                   const pt_real *ratio_pts, long stride, pt_real *u_work, pt_real *duties_out);
+/* Dead-zone dithering: a first-order sigma-delta per valve, once per PWM carrier period. */
+void pt_dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt_real period,
+                    const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
+                    pt_real *last);
+
 #ifdef __cplusplus
 }
 #endif
