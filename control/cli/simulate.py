@@ -3,6 +3,8 @@ closed loop."""
 
 from __future__ import annotations
 
+import contextlib
+import tempfile
 from collections.abc import Sequence
 from typing import Any
 
@@ -72,6 +74,7 @@ examples:
   simulate --experiment commissioning --plant plant.yaml --seed 5 --out /tmp/c.mcap
   simulate --controller data/controller-paper.yaml --scenario table1
   simulate --controller data/controller-paper.yaml --scenario all --json
+  simulate --controller data/controller-paper.yaml --scenario table1 --law c-float
   simulate --controller reports/tune/controller.yaml --scenario sine-0.5hz --out run.mcap \\
            --plots reports/figs
 
@@ -104,37 +107,75 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
         raise ExperimentError("--controller needs --scenario S (a name, table1, all or a "
                               "comma-separated list)")
     scenarios = resolve_scenarios(args.scenario)
+    args.several = len(scenarios) > 1
     cfg_vec = pack(controller)
-    results = {}
-    rows = []
-    for sc in tqdm(scenarios, desc="scenarios", unit="scenario", disable=None, leave=False):
-        res = simulate_scenario(controller, sc, plant_cfg, seed=seed, record_truth=bool(args.out),
-                                cfg_vec=cfg_vec)
-        m = res.metrics.as_dict()
-        results[sc.name] = m
-        rows.append((sc.name, m, sc.paper))
-        if args.out:
-            path = scenario_log_path(args.out, sc.name, len(scenarios) > 1)
-            run_meta = {"seed": str(seed), "scenario": sc.name, "controller": args.controller,
-                        "controller_sha256": sha256_file(args.controller),
-                        "variant": controller.variant, **plant_meta(args.plant)}
-            res.recording().save(path, rig=res.plant.rig_metadata(), run=run_meta)
-            m["log"] = str(path)
-        if args.plots:
-            from pneutune.control.cli.plots import plot_closed_loop
-
-            m["plots"] = [str(p) for p in plot_closed_loop(res, args.plots)]
+    results: dict[str, Any] = {}
+    rows: list[Any] = []
+    with contextlib.ExitStack() as stack:
+        law = None if args.law == "installed" else _target_law(args.law, stack)
+        for sc in tqdm(scenarios, desc="scenarios", unit="scenario", disable=None, leave=False):
+            res = (simulate_scenario(controller, sc, plant_cfg, seed=seed,
+                                     record_truth=bool(args.out), cfg_vec=cfg_vec)
+                   if law is None else _through_runtime(controller, sc, plant_cfg, seed, law))
+            _scenario_outputs(args, controller, sc, seed, res, results, rows)
     if args.json:
         print_json({"scenarios": results, "controller": args.controller, "seed": seed,
-                    "variant": controller.variant})
+                    "variant": controller.variant, "law": args.law})
     else:
-        info(format_table(rows, f"{args.controller} ({controller.variant}), seed {seed}"))
+        info(format_table(rows, f"{args.controller} ({controller.variant}), seed {seed}"
+                                + ("" if args.law == "installed" else f", law {args.law}")))
         for _name, m in results.items():
             if "log" in m:
                 info(f"wrote {m['log']}")
         if args.plots:
             info(f"figures in {args.plots}/")
     return 0 if all(m["status"] == "ok" for m in results.values()) else 1
+
+
+def _target_law(kind: str, stack: contextlib.ExitStack) -> Any:
+    """``--law c`` / ``c-float``: the law's C built as a target builds it, in a folder that
+    lives as long as the run (:func:`pneutune.control.law.cbuild.build`)."""
+    from pneutune.control.law.cbuild import CLaw, build
+
+    real = "float" if kind == "c-float" else "double"
+    folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="pneutune-law-"))
+    return CLaw(build(folder, real), real).step_into
+
+
+def _through_runtime(controller: Any, sc: Any, plant_cfg: PlantConfig, seed: int,
+                     law: Any) -> Any:
+    """One scenario on the simulated rig through the deploy runtime with ``law`` as the step
+    (the runtime gives the figures of the compiled closed loop for the same plant and seed)."""
+    from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+
+    rig, pcfg, _ = sim_rig_for(sc, plant_cfg, seed)
+    try:
+        res = run_scenario(controller, sc, rig, record_truth=True, plant=pcfg, seed=seed,
+                           home="off", law=law)
+    finally:
+        rig.close()
+    return res.closed_loop_result()
+
+
+def _scenario_outputs(args: Any, controller: Any, sc: Any, seed: int, res: Any,
+                      results: dict[str, Any], rows: list[Any]) -> None:
+    """The metrics, the log and the figures of one scenario."""
+    m = res.metrics.as_dict()
+    results[sc.name] = m
+    rows.append((sc.name, m, sc.paper))
+    if args.out:
+        path = scenario_log_path(args.out, sc.name, args.several)
+        run_meta = {"seed": str(seed), "scenario": sc.name, "controller": args.controller,
+                    "controller_sha256": sha256_file(args.controller),
+                    "variant": controller.variant, **plant_meta(args.plant)}
+        if args.law != "installed":
+            run_meta["law"] = args.law
+        res.recording().save(path, rig=res.plant.rig_metadata(), run=run_meta)
+        m["log"] = str(path)
+    if args.plots:
+        from pneutune.control.cli.plots import plot_closed_loop
+
+        m["plots"] = [str(p) for p in plot_closed_loop(res, args.plots)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -158,6 +199,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                              "19 makes the log about 20 %% smaller and takes about five times "
                              "as long; `make data` uses it for data/run.mcap)")
     parser.add_argument("--plots", metavar="DIR", help="write PNG figures (closed loop) to DIR")
+    parser.add_argument("--law", choices=("installed", "c", "c-float"), default="installed",
+                        help="--controller: the control step: installed (default: the law's C "
+                             "as the install compiled it, inside the compiled closed loop), c "
+                             "(the same C built as a target builds it, strict C99, run through "
+                             "the deploy runtime on the simulated rig: software in the loop) "
+                             "or c-float (that build in single precision); needs a C compiler")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout (prose goes to stderr)")
     args = parser.parse_args(argv)
@@ -172,8 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     seed = plant_cfg.sim.seed if args.seed is None else args.seed
     plant_cfg = plant_cfg.with_updates({"sim": {"seed": seed}})
     if args.experiment:
-        if args.scenario or args.plots:
-            raise ExperimentError("--scenario and --plots go with --controller, "
+        if args.scenario or args.plots or args.law != "installed":
+            raise ExperimentError("--scenario, --plots and --law go with --controller, "
                                   "not --experiment")
         return _experiment(args, seed)
     return _closed_loop(args, plant_cfg, seed)

@@ -206,6 +206,11 @@ class LoopSettings:
         Largest |x(0) - x_r(0)| [m].
     spin_s : float
         Realtime: busy-wait this long before each deadline instead of sleeping [s].
+    law : callable or None
+        The control step, with the signature of :func:`~pneutune.control.law.darc.step_into`;
+        None: the installed law. Another build of the same C
+        (:class:`~pneutune.control.law.cbuild.CLaw`, e.g. in ``float``) runs the loop as a
+        target would (software in the loop).
     """
 
     realtime: bool = False
@@ -213,6 +218,7 @@ class LoopSettings:
     fail_safe: tuple[float, float, float, float] = FAIL_SAFE_DUTIES
     start_tolerance: float = START_TOLERANCE
     spin_s: float = 5.0e-4
+    law: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], int] | None = None
 
 
 def _wait_until(deadline_ns: int, spin_ns: int) -> int:
@@ -226,7 +232,9 @@ def _wait_until(deadline_ns: int, spin_ns: int) -> int:
             time.sleep((remaining - spin_ns) * 1e-9)
 
 
-def _warm_up(cfg: np.ndarray, ref: np.ndarray) -> None:
+def _warm_up(cfg: np.ndarray, ref: np.ndarray,
+             law: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], int] = step_into,
+             ) -> None:
     """One control step on a scratch state, so that loading the compiled step does not delay
     the first sample of a paced run."""
     if ref.shape[0] == 0:
@@ -236,7 +244,7 @@ def _warm_up(cfg: np.ndarray, ref: np.ndarray) -> None:
     meas[1] = ref[0, 0]
     meas[2:5] = (2.0e5, 2.0e5, 6.0e5)
     meas[5:8] = ref[0]
-    step_into(scratch, meas, cfg, np.empty(4))
+    law(scratch, meas, cfg, np.empty(4))
 
 
 class _Pacer:
@@ -531,7 +539,8 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
     fault: Event | None = None
     n_done = 0
     pacer = _Pacer(n, Ts, opts.realtime, opts.spin_s)
-    _warm_up(cfg, ref)
+    law = step_into if opts.law is None else opts.law
+    _warm_up(cfg, ref, law)
     pacer.start()
     clock = time.perf_counter_ns
     try:
@@ -546,7 +555,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             meas[1:5] = s
             meas[5:8] = ref[k]
             t_step = clock()
-            step_into(cs, meas, cfg, duties)
+            law(cs, meas, cfg, duties)
             t_step_end = clock()
             _write_duties(rig, k, t, duties)
             t_written = clock()
@@ -742,7 +751,9 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
                  seed: int | None = None,
                  on_sample: Callable[[int], None] | None = None,
                  home: str = "auto",
-                 start_tolerance: float = START_TOLERANCE) -> ScenarioResult:
+                 start_tolerance: float = START_TOLERANCE,
+                 law: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], int] | None
+                 = None) -> ScenarioResult:
     """Deploy ``controller`` on ``rig`` for one scenario and compute the metrics.
 
     Parameters
@@ -772,6 +783,8 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         docstring): when it rests more than ``start_tolerance`` away, always, or never.
     start_tolerance : float
         Largest |x(0) - x_r(0)| of the scenario's start [m].
+    law : callable, optional
+        The control step (:attr:`LoopSettings.law`); default the installed law.
 
     Returns
     -------
@@ -785,14 +798,15 @@ def run_scenario(controller: ControllerConfig, scenario: Scenario, rig: Rig, *,
         SupervisorSettings.from_controller(controller))
     cfg = pack(controller) if cfg_vec is None else cfg_vec
     settings = LoopSettings(realtime=realtime, record_truth=record_truth, fail_safe=fail_safe,
-                            start_tolerance=start_tolerance)
+                            start_tolerance=start_tolerance, law=law)
     if home not in HOME_MODES:
         raise ValueError(f"home must be one of {HOME_MODES}, got {home!r}")
     homing: LoopResult | None = None
     segment = (scenario.name, "scenario", {"description": scenario.description})
     first: tuple[np.ndarray, np.ndarray | None] | RigIOError | None = None
     if home != "off":
-        _warm_up(cfg, ref)  # before the first reading, which then serves its sample at once
+        # before the first reading, which then serves its sample at once
+        _warm_up(cfg, ref, step_into if law is None else law)
         try:
             first = (rig.read(), rig.sample_times())
         except RigIOError as exc:

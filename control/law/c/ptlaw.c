@@ -96,10 +96,10 @@ static pt_real iso6358_flow(pt_real C, pt_real b, pt_real p_u, pt_real p_d, pt_r
 
 /* --- control/law/kalman.py ------------------------------------------------------------- */
 
-/* pt_kf_predict_into: time update of Eq. (35) in place, x <- A x, P <- A P A^T + W Q W^T, for n
+/* kf_predict_into: time update of Eq. (35) in place, x <- A x, P <- A P A^T + W Q W^T, for n
  * states; A and WQWt row-major n x n, Pf the covariance row-major; work >= n*n + n. */
-void pt_kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real *WQWt,
-                        pt_real *work, int n)
+static void kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real *WQWt,
+                            pt_real *work, int n)
 {
     int i, j, k;
     pt_real s;
@@ -136,10 +136,10 @@ void pt_kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real
     }
 }
 
-/* pt_kf_update_into: measurement update of Eq. (36) in Joseph form, in place, for the scalar
+/* kf_update_into: measurement update of Eq. (36) in Joseph form, in place, for the scalar
  * measurement z = H x + v, E[v^2] = R; work >= 2 n*n + n, work[:n] = the gain K on return. */
-void pt_kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_real R,
-                       pt_real *work, int n)
+static void kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_real R,
+                           pt_real *work, int n)
 {
     int i, j, k;
     int m0 = n;
@@ -192,10 +192,10 @@ void pt_kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_
 
 /* --- control/law/projection.py --------------------------------------------------------- */
 
-/* pt_proj_into: the discontinuous projection of Eq. (10), elementwise (= as >= / <=);
+/* proj_into: the discontinuous projection of Eq. (10), elementwise (= as >= / <=);
  * out may be v itself. */
-void pt_proj_into(const pt_real *theta_hat, const pt_real *v, const pt_real *theta_min,
-                  const pt_real *theta_max, pt_real *out, int n)
+static void proj_into(const pt_real *theta_hat, const pt_real *v, const pt_real *theta_min,
+                      const pt_real *theta_max, pt_real *out, int n)
 {
     int i;
     pt_real vi;
@@ -210,8 +210,8 @@ void pt_proj_into(const pt_real *theta_hat, const pt_real *v, const pt_real *the
     }
 }
 
-/* pt_sat_into: the rate saturation of Eq. (11), elementwise; out may be v itself. */
-void pt_sat_into(const pt_real *v, const pt_real *rate_max, pt_real *out, int n)
+/* sat_into: the rate saturation of Eq. (11), elementwise; out may be v itself. */
+static void sat_into(const pt_real *v, const pt_real *rate_max, pt_real *out, int n)
 {
     int i;
     pt_real vi, m;
@@ -228,28 +228,28 @@ void pt_sat_into(const pt_real *v, const pt_real *rate_max, pt_real *out, int n)
     }
 }
 
-/* pt_adaptation_rate_into: the adaptation law of Eq. (9), out = sat(Proj(Gamma tau)). */
-void pt_adaptation_rate_into(const pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
-                             const pt_real *rate_max, const pt_real *theta_min,
-                             const pt_real *theta_max, pt_real *out, int n)
+/* adaptation_rate_into: the adaptation law of Eq. (9), out = sat(Proj(Gamma tau)). */
+static void adaptation_rate_into(const pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                                 const pt_real *rate_max, const pt_real *theta_min,
+                                 const pt_real *theta_max, pt_real *out, int n)
 {
     int i;
     for (i = 0; i < n; ++i) {
         out[i] = gamma[i] * tau[i];
     }
-    pt_proj_into(theta_hat, out, theta_min, theta_max, out, n);
-    pt_sat_into(out, rate_max, out, n);
+    proj_into(theta_hat, out, theta_min, theta_max, out, n);
+    sat_into(out, rate_max, out, n);
 }
 
-/* pt_adapt_step_into: theta <- clip(theta + Ts sat(Proj(Gamma tau)), theta_min, theta_max);
+/* adapt_step_into: theta <- clip(theta + Ts sat(Proj(Gamma tau)), theta_min, theta_max);
  * rate_out receives the effective rate (theta_new - theta_old) / Ts. */
-void pt_adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
-                        const pt_real *rate_max, const pt_real *theta_min,
-                        const pt_real *theta_max, pt_real Ts, pt_real *rate_out, int n)
+static void adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                            const pt_real *rate_max, const pt_real *theta_min,
+                            const pt_real *theta_max, pt_real Ts, pt_real *rate_out, int n)
 {
     int i;
     pt_real old, new_;
-    pt_adaptation_rate_into(theta_hat, tau, gamma, rate_max, theta_min, theta_max, rate_out, n);
+    adaptation_rate_into(theta_hat, tau, gamma, rate_max, theta_min, theta_max, rate_out, n);
     for (i = 0; i < n; ++i) {
         old = theta_hat[i];
         new_ = old + Ts * rate_out[i];
@@ -265,11 +265,11 @@ void pt_adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *g
 
 /* --- control/law/duty.py --------------------------------------------------------------- */
 
-/* pt_fully_open_q_l: Q_L,F of Eq. (32) (corrected) for the mode of the sign of q_ld [N/s], with
+/* fully_open_q_l: Q_L,F of Eq. (32) (corrected) for the mode of the sign of q_ld [N/s], with
  * C and b of a_in, a_out, b_in, b_out. */
-pt_real pt_fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, pt_real p0,
-                          pt_real T0, pt_real nR, pt_real A_a, pt_real A_b, pt_real V_a,
-                          pt_real V_b, const pt_real *C, const pt_real *b)
+static pt_real fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, pt_real p0,
+                              pt_real T0, pt_real nR, pt_real A_a, pt_real A_b, pt_real V_a,
+                              pt_real V_b, const pt_real *C, const pt_real *b)
 {
     pt_real m_a, m_b;
     if (q_ld > PT_C(0.0)) {
@@ -284,9 +284,9 @@ pt_real pt_fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, p
     return nR * T0 * (A_a * m_a / V_a + A_b * m_b / V_b);
 }
 
-/* pt_eq33_into: the five cases of Eq. (33) (corrected), effective open fractions of the four
+/* eq33_into: the five cases of Eq. (33) (corrected), effective open fractions of the four
  * valves in u_out; returns the case 1..5 (a NaN q_ld is case 3, all closed). */
-int pt_eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
+static int eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
 {
     int i;
     pt_real r, u;
@@ -320,9 +320,9 @@ int pt_eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
     return PT_CASE_CLOSED;
 }
 
-/* pt_pwm_inverse: the smallest duty whose effective open fraction on the curve
+/* pwm_inverse: the smallest duty whose effective open fraction on the curve
  * (duty_pts[:m], ratio_pts[:m]) reaches ratio: 0 for ratio <= 0, 1 at or above the top. */
-pt_real pt_pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ratio_pts, long m)
+static pt_real pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ratio_pts, long m)
 {
     long i;
     pt_real top, r0, r1, d0, d1;
@@ -356,15 +356,15 @@ pt_real pt_pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ra
     return duty_pts[m - 1];
 }
 
-/* pt_duties_into: Eq. (33) then each valve's PWM inverse on its own curve (valve i's from
+/* duties_into: Eq. (33) then each valve's PWM inverse on its own curve (valve i's from
  * i * stride in duty_pts, ratio_pts, 4 * stride long); u_work receives the fractions. */
-int pt_duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_real *duty_pts,
-                   const pt_real *ratio_pts, long stride, pt_real *u_work, pt_real *duties_out)
+static int duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_real *duty_pts,
+                       const pt_real *ratio_pts, long stride, pt_real *u_work, pt_real *duties_out)
 {
     int i;
     long at, avail, m;
     pt_real v;
-    int c = pt_eq33_into(q_ld, q_lf, u_work);
+    int c = eq33_into(q_ld, q_lf, u_work);
     for (i = 0; i < 4; ++i) {
         at = i * stride;
         avail = 4 * stride - at;
@@ -377,16 +377,16 @@ int pt_duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_re
         } else {
             m = 0;
         }
-        duties_out[i] = pt_pwm_inverse(u_work[i], duty_pts + at, ratio_pts + at, m);
+        duties_out[i] = pwm_inverse(u_work[i], duty_pts + at, ratio_pts + at, m);
     }
     return c;
 }
 
-/* pt_dither_into: dead-zone dithering, a first-order sigma-delta per valve deciding once per PWM
+/* dither_into: dead-zone dithering, a first-order sigma-delta per valve deciding once per PWM
  * carrier period whether a valve with 0 < u < r_k gets the knee's pulse d_k or 0. */
-void pt_dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt_real period,
-                    const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
-                    pt_real *last)
+static void dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt_real period,
+                        const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
+                        pt_real *last)
 {
     int i;
     pt_real ui, rk;
@@ -476,8 +476,8 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
     /* 1. motion filter, Eqs. (34)-(36) */
     mx = state + PT_S_MX;
     mp = state + PT_S_MP;
-    pt_kf_predict_into(mx, mp, cfg + PT_CFG_KM_A, cfg + PT_CFG_KM_WQW, work, 3);
-    pt_kf_update_into(mx, mp, x_meas, cfg + PT_CFG_KM_H, cfg[PT_CFG_KM_R], work, 3);
+    kf_predict_into(mx, mp, cfg + PT_CFG_KM_A, cfg + PT_CFG_KM_WQW, work, 3);
+    kf_update_into(mx, mp, x_meas, cfg + PT_CFG_KM_H, cfg[PT_CFG_KM_R], work, 3);
     x1 = code(cfg[PT_CFG_POS_FB]) == PT_POS_FB_FILTERED ? mx[0] : x_meas;
     x2 = mx[1];
 
@@ -536,7 +536,7 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
         tau[4] = A_a * r3e3;
         tau[5] = -A_b * r3e3;
         if (PT_FABS(v_r) > cfg[PT_CFG_MIN_REF_SPEED]) {
-            pt_adapt_step_into(theta, tau, cfg + PT_CFG_GAMMA, cfg + PT_CFG_RATE_MAX,
+            adapt_step_into(theta, tau, cfg + PT_CFG_GAMMA, cfg + PT_CFG_RATE_MAX,
                             cfg + PT_CFG_THETA_MIN, cfg + PT_CFG_THETA_MAX, Ts, thdot, 6);
         } else {
             for (i = 0; i < 6; ++i) {
@@ -557,8 +557,8 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
                 fp[2] = PT_C(0.0);
                 fp[3] = R_f / (Ts * Ts);
             } else {
-                pt_kf_predict_into(fx, fp, cfg + PT_CFG_KF_A, cfg + PT_CFG_KF_WQW, work, 2);
-                pt_kf_update_into(fx, fp, F_pd, cfg + PT_CFG_KF_H, cfg[PT_CFG_KF_R], work, 2);
+                kf_predict_into(fx, fp, cfg + PT_CFG_KF_A, cfg + PT_CFG_KF_WQW, work, 2);
+                kf_update_into(fx, fp, F_pd, cfg + PT_CFG_KF_H, cfg[PT_CFG_KF_R], work, 2);
             }
             dF_pd = fx[1];
         } else if (variant == PT_VARIANT_DIRECT_DIFF) {
@@ -587,12 +587,12 @@ int pt_step_into(pt_real *state, const pt_real *meas, const pt_real *cfg, pt_rea
     }
 
     /* 7. step 3, Eqs. (32)-(33) and the PWM inverse */
-    q_lf = pt_fully_open_q_l(q_ld, p_a, p_b, p_s, cfg[PT_CFG_P0], cfg[PT_CFG_T0], cfg[PT_CFG_NR],
+    q_lf = fully_open_q_l(q_ld, p_a, p_b, p_s, cfg[PT_CFG_P0], cfg[PT_CFG_T0], cfg[PT_CFG_NR],
                           A_a, A_b, V_a, V_b, cfg + PT_CFG_VALVE_C, cfg + PT_CFG_VALVE_B);
-    c = pt_duties_into(q_ld, q_lf, cfg + PT_CFG_PWM_N, cfg + PT_CFG_PWM_DUTY, cfg + PT_CFG_PWM_RATIO,
+    c = duties_into(q_ld, q_lf, cfg + PT_CFG_PWM_N, cfg + PT_CFG_PWM_DUTY, cfg + PT_CFG_PWM_RATIO,
                     PT_PWM_STRIDE, state + PT_S_U, duties_out);
     if (code(cfg[PT_CFG_DZ_MODE]) == PT_DZ_DITHER) {
-        pt_dither_into(state + PT_S_U, duties_out, meas[PT_M_T], Ts, cfg[PT_CFG_PWM_PERIOD],
+        dither_into(state + PT_S_U, duties_out, meas[PT_M_T], Ts, cfg[PT_CFG_PWM_PERIOD],
                     cfg + PT_CFG_DZ_DUTY, cfg + PT_CFG_DZ_RATIO, state + PT_S_DZ_ACC,
                     state + PT_S_DZ_PULSE, state + PT_S_DZ_PERIOD);
     }
@@ -654,4 +654,75 @@ int pt_init_state(pt_real *state, const pt_real *cfg, pt_real x0, pt_real p_a0, 
     }
     state[PT_S_DZ_PERIOD] = PT_C(-1.0);
     return 0;
+}
+
+/* --- exported kernels ----------------------------------------------------------------
+ * The step calls the static functions above; these are their exported names (ptlaw.h), so
+ * that no other library loaded in the same process can interpose on the step's own calls. */
+
+void pt_kf_predict_into(pt_real *x, pt_real *Pf, const pt_real *A, const pt_real *WQWt,
+                        pt_real *work, int n)
+{
+    kf_predict_into(x, Pf, A, WQWt, work, n);
+}
+
+void pt_kf_update_into(pt_real *x, pt_real *Pf, pt_real z, const pt_real *H, pt_real R,
+                       pt_real *work, int n)
+{
+    kf_update_into(x, Pf, z, H, R, work, n);
+}
+
+void pt_proj_into(const pt_real *theta_hat, const pt_real *v, const pt_real *theta_min,
+                  const pt_real *theta_max, pt_real *out, int n)
+{
+    proj_into(theta_hat, v, theta_min, theta_max, out, n);
+}
+
+void pt_sat_into(const pt_real *v, const pt_real *rate_max, pt_real *out, int n)
+{
+    sat_into(v, rate_max, out, n);
+}
+
+void pt_adaptation_rate_into(const pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                             const pt_real *rate_max, const pt_real *theta_min,
+                             const pt_real *theta_max, pt_real *out, int n)
+{
+    adaptation_rate_into(theta_hat, tau, gamma, rate_max, theta_min, theta_max, out, n);
+}
+
+void pt_adapt_step_into(pt_real *theta_hat, const pt_real *tau, const pt_real *gamma,
+                        const pt_real *rate_max, const pt_real *theta_min,
+                        const pt_real *theta_max, pt_real Ts, pt_real *rate_out, int n)
+{
+    adapt_step_into(theta_hat, tau, gamma, rate_max, theta_min, theta_max, Ts, rate_out, n);
+}
+
+pt_real pt_fully_open_q_l(pt_real q_ld, pt_real p_a, pt_real p_b, pt_real p_s, pt_real p0,
+                          pt_real T0, pt_real nR, pt_real A_a, pt_real A_b, pt_real V_a,
+                          pt_real V_b, const pt_real *C, const pt_real *b)
+{
+    return fully_open_q_l(q_ld, p_a, p_b, p_s, p0, T0, nR, A_a, A_b, V_a, V_b, C, b);
+}
+
+int pt_eq33_into(pt_real q_ld, pt_real q_lf, pt_real *u_out)
+{
+    return eq33_into(q_ld, q_lf, u_out);
+}
+
+pt_real pt_pwm_inverse(pt_real ratio, const pt_real *duty_pts, const pt_real *ratio_pts, long m)
+{
+    return pwm_inverse(ratio, duty_pts, ratio_pts, m);
+}
+
+int pt_duties_into(pt_real q_ld, pt_real q_lf, const pt_real *n_pts, const pt_real *duty_pts,
+                   const pt_real *ratio_pts, long stride, pt_real *u_work, pt_real *duties_out)
+{
+    return duties_into(q_ld, q_lf, n_pts, duty_pts, ratio_pts, stride, u_work, duties_out);
+}
+
+void pt_dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt_real period,
+                    const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
+                    pt_real *last)
+{
+    dither_into(u, duties, t, Ts, period, d_k, r_k, acc, pulse, last);
 }
