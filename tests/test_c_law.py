@@ -374,3 +374,33 @@ def test_float_build_compiles(tmp_path: Path) -> None:
     same flags without a warning (compiled only: a float law cannot equal the double one)."""
     proc = _compile(tmp_path / "libptlaw_float.so", "-DPT_REAL_FLOAT")
     assert proc.returncode == 0 and not proc.stderr.strip(), proc.stderr
+
+
+def test_the_laws_physics_is_the_plants(c_law: CLaw) -> None:
+    """The ISO 6358 flow (Eq. 7) and S_f (Eq. 4) the law's model computes in C are the plant's
+    numba functions (control/physics) bit for bit, on random and edge inputs: one formula in two
+    languages, held equal (the plant's inner loop stays numba, where it inlines)."""
+    from pneutune.control.physics.flow import iso6358_flow
+    from pneutune.control.physics.friction import smooth_sign, smooth_sign_derivative
+
+    lib = c_law.lib
+    d = ctypes.c_double
+    lib.pt_iso6358_flow.restype = d
+    lib.pt_iso6358_flow.argtypes = [d] * 5
+    for name in ("pt_smooth_sign", "pt_smooth_sign_derivative"):
+        getattr(lib, name).restype = d
+        getattr(lib, name).argtypes = [d]
+    rng = np.random.default_rng(5)
+    n = 4000
+    C = rng.uniform(1e-9, 5e-8, n)
+    b = rng.uniform(0.0, 0.9, n)
+    p_u = rng.uniform(-1e5, 8e5, n)
+    p_d = np.where(rng.random(n) < 0.2, p_u * rng.uniform(0.995, 1.0, n),
+                   rng.uniform(0.0, 8e5, n))
+    T = rng.uniform(250.0, 350.0, n)
+    for k in range(n):
+        args = (C[k], b[k], p_u[k], p_d[k], T[k])
+        assert lib.pt_iso6358_flow(*args) == iso6358_flow(*args), args
+    for v in (*rng.normal(0.0, 0.05, 2000), 0.0, -0.0, 1e-300, 50.0, -50.0):
+        assert lib.pt_smooth_sign(v) == smooth_sign(v), v
+        assert lib.pt_smooth_sign_derivative(v) == smooth_sign_derivative(v), v

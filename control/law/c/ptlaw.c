@@ -726,3 +726,18 @@ void pt_dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt
 {
     dither_into(u, duties, t, Ts, period, d_k, r_k, acc, pulse, last);
 }
+
+pt_real pt_iso6358_flow(pt_real C, pt_real b, pt_real p_u, pt_real p_d, pt_real T_u)
+{
+    return iso6358_flow(C, b, p_u, p_d, T_u);
+}
+
+pt_real pt_smooth_sign(pt_real v)
+{
+    return smooth_sign(v);
+}
+
+pt_real pt_smooth_sign_derivative(pt_real v)
+{
+    return smooth_sign_derivative(v);
+}

@@ -81,6 +81,12 @@ void pt_dither_into(const pt_real *u, pt_real *duties, pt_real t, pt_real Ts, pt
                     const pt_real *d_k, const pt_real *r_k, pt_real *acc, pt_real *pulse,
                     pt_real *last);
 
+/* The physics the law's model uses, as the plant's (control/physics/flow.py, friction.py):
+ * the ISO 6358 flow of Eq. (7) [kg/s] and S_f of Eq. (4) with its derivative. */
+pt_real pt_iso6358_flow(pt_real C, pt_real b, pt_real p_u, pt_real p_d, pt_real T_u);
+pt_real pt_smooth_sign(pt_real v);
+pt_real pt_smooth_sign_derivative(pt_real v);
+
 #ifdef __cplusplus
 }
 #endif
