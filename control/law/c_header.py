@@ -17,7 +17,7 @@ import argparse
 import math
 import sys
 import unicodedata
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from pneutune.control.constants import RHO0, T_REF
@@ -41,7 +41,7 @@ _ENUMS: tuple[tuple[str, str], ...] = (
 )
 
 
-def _ascii(text: str) -> str:
+def ascii_comment(text: str) -> str:
     """``text`` for a C comment: Greek letters spelt out, accents dropped, no ``*/``."""
     out = []
     for ch in unicodedata.normalize("NFD", text):
@@ -57,7 +57,7 @@ def _ascii(text: str) -> str:
     return "".join(out).replace("*/", "* /")
 
 
-def _c_double(value: float) -> str:
+def c_double(value: float) -> str:
     """A C double literal that reads back as exactly ``value`` (``repr`` round-trips)."""
     if not math.isfinite(value):
         raise ValueError(f"a layout constant must be finite, got {value}")
@@ -72,10 +72,11 @@ def _indices(module: object, prefix: str) -> list[tuple[str, int]]:
     return sorted(found, key=lambda item: (item[1], item[0]))
 
 
-def _define(name: str, value: str, comment: str = "") -> str:
+def define(name: str, value: str, comment: str = "") -> str:
+    """``#define PT_<name> <value>``, with ``comment`` as an aligned C comment."""
     line = f"#define PT_{name} {value}"
     if comment:
-        line = f"{line:<44} /* {_ascii(comment)} */"
+        line = f"{line:<44} /* {ascii_comment(comment)} */"
     return line
 
 
@@ -112,12 +113,12 @@ def layout_header() -> str:
         offset = getattr(_layout, name, None)
         if type(offset) is not int:
             raise RuntimeError(f"layout.SLOTS names {name}, which layout.py does not define")
-        lines.append(_define(name, str(offset), f"[{width}] {meaning}"))
+        lines.append(define(name, str(offset), f"[{width}] {meaning}"))
     lines += [
-        _define("CFG_SIZE", str(_layout.CFG_SIZE), "length of the config vector"),
-        _define("CFG_LAYOUT_ID", _c_double(_layout.CFG_LAYOUT_ID),
+        define("CFG_SIZE", str(_layout.CFG_SIZE), "length of the config vector"),
+        define("CFG_LAYOUT_ID", c_double(_layout.CFG_LAYOUT_ID),
                 "cfg[PT_CFG_LAYOUT] of this layout"),
-        _define("PWM_STRIDE", str(_layout.PWM_STRIDE),
+        define("PWM_STRIDE", str(_layout.PWM_STRIDE),
                 "distance between two valves' PWM curves"),
         "",
         "/* controller state vector (darc.py): index, then width */",
@@ -125,14 +126,14 @@ def layout_header() -> str:
     states = _indices(_darc, "S_")
     bounds = [value for _, value in states[1:]] + [_darc.STATE_SIZE]
     for (name, value), end in zip(states, bounds, strict=True):
-        lines.append(_define(name, str(value), f"[{end - value}]"))
+        lines.append(define(name, str(value), f"[{end - value}]"))
     lines += [
-        _define("STATE_SIZE", str(_darc.STATE_SIZE), "length of the state vector"),
+        define("STATE_SIZE", str(_darc.STATE_SIZE), "length of the state vector"),
         "",
         "/* measurement vector (darc.py): " + ", ".join(_darc.MEAS_FIELDS) + " */",
     ]
-    lines += [_define(name, str(value)) for name, value in _indices(_darc, "M_")]
-    lines += [_define("MEAS_SIZE", str(_darc.MEAS_SIZE), "length of the measurement vector")]
+    lines += [define(name, str(value)) for name, value in _indices(_darc, "M_")]
+    lines += [define("MEAS_SIZE", str(_darc.MEAS_SIZE), "length of the measurement vector")]
     for prefix, names_attr in _ENUMS:
         names = getattr(_contract, names_attr)
         lines += ["", f"/* cfg codes, controller.{names_attr}: {', '.join(names)} */"]
@@ -140,23 +141,23 @@ def layout_header() -> str:
             if not (0 <= value < len(names) and prefix + names[value].upper() == name):
                 raise RuntimeError(f"controller.{name} = {value} is not the index of its name "
                                    f"in controller.{names_attr} = {names}")
-            lines.append(_define(name, str(value)))
+            lines.append(define(name, str(value)))
     lines += [
-        _define("PWM_MAX_POINTS", str(_contract.PWM_MAX_POINTS),
+        define("PWM_MAX_POINTS", str(_contract.PWM_MAX_POINTS),
                 "largest number of points of a PWM curve"),
         "",
         "/* Eq. (33) cases returned by the step (duty.CASE_NAMES) */",
     ]
-    lines += [_define(name, str(value), _duty.CASE_NAMES[value])
+    lines += [define(name, str(value), _duty.CASE_NAMES[value])
               for name, value in _indices(_duty, "CASE_")]
     lines += [
         "",
         "/* constants of S_f, Eq. (4), and of the ISO 6358 flow, Eq. (7) */",
-        _define("PI", _c_double(math.pi), "math.pi"),
-        _define("SF_SLOPE", _c_double(SF_SLOPE), "slope of the arctan in S_f [s/m]"),
-        _define("RHO0", _c_double(RHO0), "air density at the ISO 6358 reference [kg/m^3]"),
-        _define("T_REF", _c_double(T_REF), "ISO 6358 reference temperature [K]"),
-        _define("LIN_WIDTH", _c_double(LIN_WIDTH),
+        define("PI", c_double(math.pi), "math.pi"),
+        define("SF_SLOPE", c_double(SF_SLOPE), "slope of the arctan in S_f [s/m]"),
+        define("RHO0", c_double(RHO0), "air density at the ISO 6358 reference [kg/m^3]"),
+        define("T_REF", c_double(T_REF), "ISO 6358 reference temperature [K]"),
+        define("LIN_WIDTH", c_double(LIN_WIDTH),
                 "pressure-ratio width of the linear end of Eq. (7) [-]"),
         "",
         "#endif /* PT_LAYOUT_H */",
@@ -165,14 +166,22 @@ def layout_header() -> str:
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Write ``pt_layout.h``, or with ``--check`` compare it with the constants.
+def header_main(argv: Sequence[str] | None, prog: str, description: str,
+                generate: Callable[[], str], default_path: Path) -> int:
+    """The command of a generated header: write it, or with ``--check`` compare.
 
     Parameters
     ----------
-    argv : sequence of str, optional
-        Command-line arguments (default ``sys.argv[1:]``): ``--check`` and ``--output PATH``
-        (default :data:`HEADER_PATH`).
+    argv : sequence of str or None
+        ``--check`` and ``--output PATH`` (default ``default_path``).
+    prog : str
+        How the command is run (``python -m ...``), for the help and the message.
+    description : str
+        What the header holds.
+    generate : callable
+        Returns the header's text.
+    default_path : Path
+        The committed header.
 
     Returns
     -------
@@ -180,27 +189,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         0 when written, or with ``--check`` when the file is current; 1 when ``--check`` finds
         it missing or different.
     """
-    parser = argparse.ArgumentParser(
-        prog="python -m pneutune.control.law.c_header",
-        description="Generate pt_layout.h, the C indices of the control law's vectors, "
-                    "from the Python constants.")
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--check", action="store_true",
                         help="do not write; exit 1 if the file differs from the generated text")
-    parser.add_argument("--output", type=Path, default=HEADER_PATH,
-                        help=f"the header (default {HEADER_PATH})")
+    parser.add_argument("--output", type=Path, default=default_path,
+                        help=f"the header (default {default_path})")
     args = parser.parse_args(argv)
-    text = layout_header()
+    text = generate()
     path: Path = args.output
     if args.check:
         current = path.read_text(encoding="ascii") if path.is_file() else None
         if current != text:
             print(f"{path} is {'missing' if current is None else 'out of date'}: run "
-                  f"`python -m pneutune.control.law.c_header`", file=sys.stderr)
+                  f"`{prog}`", file=sys.stderr)
             return 1
         return 0
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="ascii", newline="\n")
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Write ``pt_layout.h``, or with ``--check`` compare it with the constants
+    (:func:`header_main`)."""
+    return header_main(argv, "python -m pneutune.control.law.c_header",
+                       "Generate pt_layout.h, the C indices of the control law's vectors, from "
+                       "the Python constants.", layout_header, HEADER_PATH)
 
 
 if __name__ == "__main__":

@@ -35,10 +35,6 @@ Status word (``uint32_t``)
 
 from __future__ import annotations
 
-import argparse
-import math
-import sys
-import unicodedata
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
@@ -47,6 +43,7 @@ import numpy as np
 
 from pneutune.control.constants import THETA_NAMES
 from pneutune.control.contracts.controller import ControllerConfig
+from pneutune.control.law.c_header import ascii_comment, c_double, define, header_main
 from pneutune.control.rig.runtime import START_TOLERANCE
 from pneutune.control.rig.supervisor import (  # _TIME_EPS: the Python's own 1 ns margin
     _TIME_EPS,
@@ -284,37 +281,9 @@ def first_fault(status: int) -> str | None:
     return STATUS_FAULT_CODES[(faults & -faults).bit_length() - 1]
 
 
-def _ascii(text: str) -> str:
-    """``text`` for a C comment: Greek letters spelt out, accents dropped, no ``*/``."""
-    out = []
-    for ch in unicodedata.normalize("NFD", text):
-        if ch.isascii():
-            out.append(ch)
-        elif unicodedata.name(ch, "").startswith("GREEK "):
-            out.append(unicodedata.name(ch).rsplit(" ", 1)[-1].lower())
-        elif not unicodedata.combining(ch):
-            out.append("?")
-    return "".join(out).replace("*/", "* /")
-
-
-def _c_double(value: float) -> str:
-    """A C double literal that reads back as exactly ``value``."""
-    if not math.isfinite(value):
-        raise ValueError(f"a layout constant must be finite, got {value}")
-    text = repr(float(value))
-    return text if any(c in text for c in ".e") else text + ".0"
-
-
-def _define(name: str, value: str, comment: str = "") -> str:
-    line = f"#define PT_{name} {value}"
-    if comment:
-        line = f"{line:<44} /* {_ascii(comment)} */"
-    return line
-
-
 def _slot_lines(slots: tuple[tuple[str, int, str], ...]) -> list[str]:
     names = globals()
-    return [_define(name, str(names[name]), f"[{width}] {meaning}")
+    return [define(name, str(names[name]), f"[{width}] {meaning}")
             for name, width, meaning in slots]
 
 
@@ -345,33 +314,33 @@ def sup_layout_header() -> str:
         "",
         "/* settings vector (supervisor_pack.SUP_SLOTS): offset, then width and meaning */",
         *_slot_lines(SUP_SLOTS),
-        _define("SUP_SIZE", str(SUP_SIZE), "length of the settings vector"),
-        _define("SUP_LAYOUT_ID", _c_double(SUP_LAYOUT_ID), "sup[PT_SUP_LAYOUT] of this layout"),
+        define("SUP_SIZE", str(SUP_SIZE), "length of the settings vector"),
+        define("SUP_LAYOUT_ID", c_double(SUP_LAYOUT_ID), "sup[PT_SUP_LAYOUT] of this layout"),
         "",
         "/* state vector (supervisor_pack.SUP_STATE_SLOTS): offset, then width and meaning */",
         *_slot_lines(SUP_STATE_SLOTS),
-        _define("SUP_STATE_SIZE", str(SUP_STATE_SIZE), "length of the state vector"),
+        define("SUP_STATE_SIZE", str(SUP_STATE_SIZE), "length of the state vector"),
         "",
         "/* sensor channels (supervisor.CHANNELS), the order of the sensors array */",
-        *[_define(f"CH_{name.upper()}", str(i)) for i, name in enumerate(CHANNELS)],
+        *[define(f"CH_{name.upper()}", str(i)) for i, name in enumerate(CHANNELS)],
         "",
         "/* theta indices watched for a bound (supervisor.WATCHED_THETA): "
-        + ", ".join(_ascii(THETA_NAMES[i]) for i in WATCHED_THETA) + " */",
-        _define("SUP_N_WATCHED", str(len(WATCHED_THETA))),
-        _define("SUP_WATCHED_THETA_INIT", "{" + ", ".join(str(i) for i in WATCHED_THETA) + "}"),
+        + ", ".join(ascii_comment(THETA_NAMES[i]) for i in WATCHED_THETA) + " */",
+        define("SUP_N_WATCHED", str(len(WATCHED_THETA))),
+        define("SUP_WATCHED_THETA_INIT", "{" + ", ".join(str(i) for i in WATCHED_THETA) + "}"),
         "",
         "/* status word: one bit per flag; the fault bits in the order they are checked",
         " * (supervisor.FAULT_CODES, then start_position, then reference_nan) */",
     ]
     for name, bit in sorted(STATUS_BITS.items(), key=lambda item: item[1]):
-        lines.append(_define(name, f"0x{1 << bit:08X}UL", f"bit {bit}"))
+        lines.append(define(name, f"0x{1 << bit:08X}UL", f"bit {bit}"))
     lines += [
-        _define("FAULT_MASK", f"0x{FAULT_MASK:08X}UL", "every fault bit"),
-        _define("WARN_MASK", f"0x{WARN_MASK:08X}UL", "every warning bit, details included"),
-        _define("STATUS_CONFIG_MASK", f"0x{CONFIG_MASK:08X}UL", "the config bits"),
-        _define("WARN_THETA_BIT0", str(THETA_BIT0), "bit of watched theta j at bound s: + 2 j + s"),
-        _define("FAULT_COUNT", str(len(STATUS_FAULT_CODES)), "fault bits 0 .. FAULT_COUNT - 1"),
-        _define("FAULT_NAMES_INIT", _names_init(STATUS_FAULT_CODES), "by fault bit"),
+        define("FAULT_MASK", f"0x{FAULT_MASK:08X}UL", "every fault bit"),
+        define("WARN_MASK", f"0x{WARN_MASK:08X}UL", "every warning bit, details included"),
+        define("STATUS_CONFIG_MASK", f"0x{CONFIG_MASK:08X}UL", "the config bits"),
+        define("WARN_THETA_BIT0", str(THETA_BIT0), "bit of watched theta j at bound s: + 2 j + s"),
+        define("FAULT_COUNT", str(len(STATUS_FAULT_CODES)), "fault bits 0 .. FAULT_COUNT - 1"),
+        define("FAULT_NAMES_INIT", _names_init(STATUS_FAULT_CODES), "by fault bit"),
         "",
         "#endif /* PT_SUP_LAYOUT_H */",
         "",
@@ -380,41 +349,11 @@ def sup_layout_header() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Write ``pt_sup_layout.h``, or with ``--check`` compare it with the tables.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Command-line arguments (default ``sys.argv[1:]``): ``--check`` and ``--output PATH``
-        (default :data:`HEADER_PATH`).
-
-    Returns
-    -------
-    int
-        0 when written, or with ``--check`` when the file is current; 1 when ``--check`` finds
-        it missing or different.
-    """
-    parser = argparse.ArgumentParser(
-        prog="python -m pneutune.control.rig.supervisor_pack",
-        description="Generate pt_sup_layout.h, the C slots and status bits of the supervisor, "
-                    "from the Python tables.")
-    parser.add_argument("--check", action="store_true",
-                        help="do not write; exit 1 if the file differs from the generated text")
-    parser.add_argument("--output", type=Path, default=HEADER_PATH,
-                        help=f"the header (default {HEADER_PATH})")
-    args = parser.parse_args(argv)
-    text = sup_layout_header()
-    path: Path = args.output
-    if args.check:
-        current = path.read_text(encoding="ascii") if path.is_file() else None
-        if current != text:
-            print(f"{path} is {'missing' if current is None else 'out of date'}: run "
-                  f"`python -m pneutune.control.rig.supervisor_pack`", file=sys.stderr)
-            return 1
-        return 0
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="ascii", newline="\n")
-    return 0
+    """Write ``pt_sup_layout.h``, or with ``--check`` compare it with the tables
+    (:func:`~pneutune.control.law.c_header.header_main`)."""
+    return header_main(argv, "python -m pneutune.control.rig.supervisor_pack",
+                       "Generate pt_sup_layout.h, the C slots and status bits of the supervisor, "
+                       "from the Python tables.", sup_layout_header, HEADER_PATH)
 
 
 __all__ = [
