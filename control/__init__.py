@@ -12,17 +12,16 @@ The package is layered; each layer imports only those before it (checked by impo
 ``logs`` -> ``plant`` -> ``law`` -> ``sim`` -> ``rig`` -> ``cli``. It never imports
 ``pneutune.identify`` or ``pneutune.tune``.
 
-Compiled functions are cached on disk in a folder named by a hash of pneutune's sources
-(:mod:`pneutune.control.numba_cache`), registered here, before any of them is defined.
+Compiled functions are cached on disk in a folder named by a hash of pneutune's sources: each
+module compiles with :func:`pneutune.control.numba_cache.njit`, which chooses that cache for
+pneutune's own functions and changes nothing of numba's.
 """
 
 from typing import Any
 
 from pneutune.control.constants import VERSION
-from pneutune.control.numba_cache import register_locator
 
 __version__ = VERSION
-register_locator()
 
 
 def __getattr__(name: str) -> Any:

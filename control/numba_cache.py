@@ -1,16 +1,22 @@
-"""Where numba caches pneutune's compiled functions.
+"""Where numba caches pneutune's compiled functions, chosen per function by pneutune's ``njit``.
 
 numba keys a cached function on its own source file only: after an edit of a module it calls
-(or of index constants it imports), a cached caller would keep running the old code. pneutune's
-functions are therefore cached in a folder named by a hash of every source file of
-``pneutune.control``, ``pneutune.identify`` and ``pneutune.tune`` and the version
+(or of index constants it imports), a cached caller would keep running the old code.
+pneutune's compiled functions are therefore cached in a folder named by a hash of every source
+file of ``pneutune.control``, ``pneutune.identify`` and ``pneutune.tune`` and the version
 (``$XDG_CACHE_HOME/pneutune/numba/<hash>``, default ``~/.cache``): any change of the sources,
 or a new version, compiles afresh.
 
-This is done by a cache locator that answers for pneutune's own files only and declines
-everything else, so numba's configuration and the caching of every other package's functions
-stay as they were. With ``NUMBA_CACHE_DIR`` set, or a cache folder that cannot be written,
-it declines too and numba's own locators decide.
+The choice is made function by function: every module of pneutune decorates with
+:func:`njit` from here instead of numba's, and ``njit(cache=True)`` gives the dispatcher a
+cache whose locator is :class:`SourceTreeLocator` (numba's own locators after it). Nothing of
+numba's is changed: its configuration, its locator list and every other package's caching stay
+as they were. With ``NUMBA_CACHE_DIR`` set, or a cache folder that cannot be written, the
+locator declines and numba's own locators decide.
+
+The one function compiled otherwise is the ufunc form of the ISO 6358 flow
+(:func:`pneutune.control.physics.flow.signed_flow_array`, ``vectorize(cache=True)``): numba's own
+locator caches it beside its module, keyed on that module, which holds everything it calls.
 """
 
 from __future__ import annotations
@@ -18,17 +24,18 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
+import numba
 from numba.core import caching
 
 from pneutune.control.constants import VERSION
 
 # public names since numba 0.61; underscored before
-CacheImpl: Any = getattr(caching, "CacheImpl", None) or caching._CacheImpl
-UserProvidedCacheLocator: Any = (getattr(caching, "UserProvidedCacheLocator", None)
-                                 or caching._UserProvidedCacheLocator)
+_UserProvidedCacheLocator: Any = (getattr(caching, "UserProvidedCacheLocator", None)
+                                  or caching._UserProvidedCacheLocator)
 
 _PACKAGE = Path(__file__).resolve().parent.parent
 #: The source trees whose functions this locator caches (the folders of the three packages).
@@ -58,7 +65,7 @@ def _ours(py_file: str) -> bool:
     return any(path.is_relative_to(root) for root in ROOTS)
 
 
-class SourceTreeLocator(UserProvidedCacheLocator):
+class SourceTreeLocator(_UserProvidedCacheLocator):
     """numba cache locator of pneutune's functions (module docstring)."""
 
     def __init__(self, py_func: Any, py_file: str) -> None:
@@ -73,11 +80,43 @@ class SourceTreeLocator(UserProvidedCacheLocator):
         if os.environ.get("NUMBA_CACHE_DIR") or not _ours(py_file):
             return None
         # the mixin's: None for a missing file or a folder that cannot be written
-        return super(UserProvidedCacheLocator, cls).from_function(py_func, py_file)
+        return super(_UserProvidedCacheLocator, cls).from_function(py_func, py_file)
 
 
-def register_locator() -> None:
-    """Put :class:`SourceTreeLocator` first among numba's cache locators (once)."""
-    classes = CacheImpl._locator_classes
-    if SourceTreeLocator not in classes:
-        classes.insert(0, SourceTreeLocator)
+class _CacheImpl(caching.CompileResultCacheImpl):
+    _locator_classes: ClassVar[list[Any]] = [SourceTreeLocator,
+                                             *caching.CompileResultCacheImpl._locator_classes]
+
+
+class FunctionCache(caching.FunctionCache):
+    """numba's function cache, with :class:`SourceTreeLocator` first among its locators."""
+
+    _impl_class = _CacheImpl
+
+
+def njit(*args: Any, cache: bool = False, **kwargs: Any) -> Any:
+    """numba's ``njit``; with ``cache=True`` the cache is :class:`FunctionCache`.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        As :func:`numba.njit` (a function, or the options; signatures are not used here).
+    cache : bool
+        Cache the compiled code on disk (module docstring).
+
+    Returns
+    -------
+    Dispatcher or decorator
+    """
+    def decorate(fn: Callable[..., Any]) -> Any:
+        dispatcher = numba.njit(**kwargs)(fn)
+        if cache:
+            dispatcher._cache = FunctionCache(dispatcher.py_func)  # numba's enable_caching
+        return dispatcher
+
+    if args and callable(args[0]):
+        return decorate(args[0])
+    return decorate
+
+
+__all__ = ["ROOTS", "FunctionCache", "SourceTreeLocator", "cache_folder", "njit", "source_hash"]

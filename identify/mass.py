@@ -36,12 +36,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numba import njit
 from scipy.integrate import cumulative_trapezoid
 from scipy.optimize import minimize_scalar
 from scipy.signal import savgol_filter
 
 from pneutune.control.errors import LogError
+from pneutune.control.numba_cache import njit
 from pneutune.control.physics.friction import stribeck
 
 from .base import Identifier

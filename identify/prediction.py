@@ -23,8 +23,9 @@ can be fitted from 4 ms samples (docs/identifiability.md).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from pneutune.control.numba_cache import njit
 from pneutune.control.plant.dynamics import advance, initial_state, set_duties
 from pneutune.control.plant.params import S_PA, S_PB, S_X
 

@@ -96,9 +96,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.stats import norm
+
+from pneutune.control.numba_cache import njit
 
 from .dataset import Dataset
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from scipy.signal import savgol_filter
 
 from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.numba_cache import njit
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import S_STUCK, S_T, S_V, pack_plant
 

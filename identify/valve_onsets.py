@@ -31,8 +31,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
+from pneutune.control.numba_cache import njit
 from pneutune.control.physics.flow import signed_flow
 
 from .dataset import Dataset

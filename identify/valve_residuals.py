@@ -11,7 +11,8 @@ operations in the same order) without them.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from pneutune.control.numba_cache import njit
 
 
 @njit(cache=True)

@@ -36,9 +36,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from pneutune.control.contracts.plant import PlantConfig, RigConfig
+from pneutune.control.numba_cache import njit
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
 from pneutune.control.plant.valves import open_fractions, valve_open_fractions

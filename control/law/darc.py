@@ -48,7 +48,6 @@ import ctypes
 from typing import Any
 
 import numpy as np
-from numba import njit
 
 from pneutune.control.contracts.controller import (
     VARIANT_DIRECT_DIFF,
@@ -65,6 +64,7 @@ from pneutune.control.law.layout import (
     pack,
 )
 from pneutune.control.logs.topics import topic_fields
+from pneutune.control.numba_cache import njit
 
 # --- measurement vector ------------------------------------------------------------------------
 M_T, M_X, M_P_A, M_P_B, M_P_S, M_X_R, M_V_R, M_A_R = 0, 1, 2, 3, 4, 5, 6, 7

@@ -65,9 +65,9 @@ Dead zone: ``up`` or ``dither`` (contract 4 ``dead_zone``)
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from pneutune.control.law import clib
+from pneutune.control.numba_cache import njit
 
 #: A segment of the PWM curve is part of the dead-zone rise when it is at least this many times
 #: steeper than the chord from (0, 0) to the curve's top (:func:`dead_zone_knee`).

@@ -34,9 +34,9 @@ Eqs. (35)-(36).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from pneutune.control.law import clib
+from pneutune.control.numba_cache import njit
 
 
 def work_size(n: int) -> int:

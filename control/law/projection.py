@@ -25,9 +25,9 @@ All functions write into caller-provided arrays: no allocation (they run in the 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from pneutune.control.law import clib
+from pneutune.control.numba_cache import njit
 
 
 @njit(cache=True, error_model="numpy")

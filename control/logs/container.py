@@ -55,9 +55,9 @@ from mcap.records import (
     SummaryOffset,
 )
 from mcap.stream_reader import CRCValidationError, StreamReader, get_chunk_data_stream
-from numba import njit
 
 from pneutune.control.errors import LogError, NotMcapError, TruncatedLogError
+from pneutune.control.numba_cache import njit
 
 __all__ = ["MCAP_MAGIC", "Scan", "read_bytes", "scan_file"]
 

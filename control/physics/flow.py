@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import math
 
-from numba import njit, vectorize
+from numba import vectorize
 
 from pneutune.control.constants import RHO0, T_REF
+from pneutune.control.numba_cache import njit
 
 #: Width, in pressure ratio, of the linear segment that replaces Eq. (7) as p_d -> p_u.
 LIN_WIDTH: float = 1.0e-3

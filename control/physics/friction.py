@@ -23,7 +23,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from pneutune.control.numba_cache import njit
 
 #: Slope of the arctan in S_f of Eq. (4) [s/m].
 SF_SLOPE: float = 1000.0

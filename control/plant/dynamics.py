@@ -54,9 +54,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from pneutune.control.logs.topics import topic_fields
+from pneutune.control.numba_cache import njit
 from pneutune.control.physics.flow import iso6358_flow, signed_flow, signed_flow_t
 from pneutune.control.physics.friction import (
     stribeck_force,

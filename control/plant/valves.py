@@ -26,8 +26,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from pneutune.control.numba_cache import njit
 from pneutune.control.plant.params import (
     N_STATE,
     P_DOFF,

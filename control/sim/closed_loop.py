@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pneutune.control.contracts.controller import ControllerConfig
 from pneutune.control.contracts.plant import PlantConfig
@@ -30,6 +30,7 @@ from pneutune.control.law.darc import (
 )
 from pneutune.control.law.layout import pack
 from pneutune.control.logs.recording import Recording
+from pneutune.control.numba_cache import njit
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.dynamics import rest_pressures
 from pneutune.control.plant.params import S_PA, S_PB, S_V, S_X, pack_plant
