@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _run(rig_kind: str, seconds: float | None, realtime: bool):
     from pneutune.control.contracts.controller import load_controller
     from pneutune.control.rig.exec_rig import PipeRig
-    from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+    from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
     from pneutune.control.sim.scenarios import SCENARIOS
 
     controller = load_controller(ROOT / "data" / "controller-paper.yaml")

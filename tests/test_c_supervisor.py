@@ -9,11 +9,12 @@ ctypes and fed the samples the Python gets:
   :class:`~pneutune.control.rig.supervisor.Supervisor` on sequences that trigger every fault and
   warning, at the thresholds' exact values and one ulp past them, on a clean closed loop and on
   random sequences: the same fault (and channel) and the same warnings at every sample;
-* the controller (``pt_controller_step``) against :func:`~pneutune.control.rig.runtime.run_scenario`
-  on the simulated rig with faults injected (:mod:`pneutune.control.rig.faults`): the C is fed
-  the readings (and sample times) the runtime read, sample by sample, and must write the very
-  duties the runtime wrote until the fault, the fail-safe duties from the fault's sample on
-  (latched), with the runtime's fault code and warnings.
+* the controller (``pt_controller_step``) against
+  :func:`~pneutune.control.rig.scenario_run.run_scenario` on the simulated rig with faults
+  injected (:mod:`pneutune.control.rig.faults`): the C is fed the readings (and sample times)
+  the runtime read, sample by sample, and must write the very duties the runtime wrote until
+  the fault, the fail-safe duties from the fault's sample on (latched), with the runtime's
+  fault code and warnings.
 
 Decisions are compared exactly, and the duties bit for bit: the controller runs the same law
 (ptlaw.c) as the runtime's step, with the same operations on the same doubles
@@ -43,12 +44,8 @@ from pneutune.control.law.darc import STATE_SIZE
 from pneutune.control.law.layout import CFG_LAYOUT, CFG_SIZE, pack
 from pneutune.control.rig import supervisor_pack as sp
 from pneutune.control.rig.faults import Fault, FaultySimRig
-from pneutune.control.rig.runtime import (
-    START_TOLERANCE,
-    ScenarioResult,
-    run_scenario,
-    scenario_reference,
-)
+from pneutune.control.rig.runtime import START_TOLERANCE
+from pneutune.control.rig.scenario_run import ScenarioResult, run_scenario, scenario_reference
 from pneutune.control.rig.supervisor import (
     CHANNELS,
     EXHAUST_DUTIES,

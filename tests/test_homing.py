@@ -1,6 +1,6 @@
 """Homing (``deploy --home auto|always|off``): a piston resting anywhere is moved to the
 scenario's x_r(0) under the controller and supervisor before the scenario runs
-(control/rig/runtime.py). ``auto`` moves only a piston more than 1 mm away, and then a run that
+(control/rig/homing.py). ``auto`` moves only a piston more than 1 mm away, and then a run that
 needs no move is the run without homing, sample for sample.
 
 Figures come from the paper's controller on the paper's rig (data/controller-paper.yaml,
@@ -27,13 +27,9 @@ from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.deploy_simrig import DeploySimRig
 from pneutune.control.rig.exec_rig import PipeRig
 from pneutune.control.rig.faults import Fault, FaultySimRig
-from pneutune.control.rig.runtime import (
-    HOME_HOLD_S,
-    HOME_MOVE_S,
-    START_TOLERANCE,
-    run_scenario,
-    sim_rig_for,
-)
+from pneutune.control.rig.homing import HOME_HOLD_S, HOME_MOVE_S
+from pneutune.control.rig.runtime import START_TOLERANCE
+from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
 from pneutune.control.rig.wire import RigIOError
 from pneutune.control.sim.closed_loop import scenario_plant
 from pneutune.control.sim.scenarios import SCENARIOS, move_and_hold

@@ -21,7 +21,7 @@ from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError
 from pneutune.control.law.cbuild import CLaw, build
-from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
 from pneutune.control.sim.scenarios import resolve_scenarios
 
 ROOT = Path(__file__).resolve().parents[1]

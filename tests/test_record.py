@@ -1,5 +1,5 @@
 """``record``: the excitation protocols on any rig, supervised (control/rig/excitation.py,
-control/cli/record.py).
+control/rig/excitation_plan.py, control/rig/contacts.py, control/cli/record.py).
 
 The simulated rig is the paper's (the default plant); the figures quoted beside the tolerances
 were measured on it when the command was written. Drivers: the example server
@@ -28,14 +28,9 @@ from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.driver import main as driver_main
 from pneutune.control.errors import PneutuneError
 from pneutune.control.logs.reader import read_run_log
-from pneutune.control.rig.excitation import (
-    CONTACT_WARN_FACTOR,
-    execute_protocol,
-    experiment_protocol,
-    protocol_settings,
-    record_on_sim,
-    select_segments,
-)
+from pneutune.control.rig.contacts import CONTACT_WARN_FACTOR
+from pneutune.control.rig.excitation import execute_protocol, protocol_settings, record_on_sim
+from pneutune.control.rig.excitation_plan import experiment_protocol, select_segments
 from pneutune.control.rig.identification_run import Segment, move_segment
 from pneutune.control.rig.simrig import SimRig
 from pneutune.control.rig.supervisor import Supervisor

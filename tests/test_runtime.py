@@ -23,7 +23,7 @@ from pneutune.control.logs.reader import read_run_log
 from pneutune.control.rig.deploy_simrig import DeploySimRig
 from pneutune.control.rig.exec_rig import PipeRig
 from pneutune.control.rig.pipe_server import serve
-from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
 from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES
 from pneutune.control.rig.wire import PROTOCOL, RigIOError
 from pneutune.control.sim.closed_loop import simulate_scenario

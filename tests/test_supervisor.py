@@ -16,7 +16,7 @@ from pneutune.control.contracts.controller import ControllerConfig, load_control
 from pneutune.control.logs.reader import read_run_log
 from pneutune.control.plant.params import S_X
 from pneutune.control.rig.faults import Fault, FaultySimRig
-from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
 from pneutune.control.rig.supervisor import (
     EXHAUST_DUTIES,
     FAIL_SAFE_DUTIES,

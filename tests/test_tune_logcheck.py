@@ -246,7 +246,7 @@ def test_a_log_of_a_homing_move_that_faulted_is_not_checked(tmp_path: Path) -> N
     """deploy's log when a fault stopped the homing move (p_a NaN at 1 s of a move from 10 mm)
     holds no scenario: recorded as ``homing_fault`` without indices, nothing to replay."""
     from pneutune.control.rig.faults import Fault, FaultySimRig
-    from pneutune.control.rig.runtime import run_scenario
+    from pneutune.control.rig.scenario_run import run_scenario
     from pneutune.control.sim.closed_loop import scenario_plant
     from pneutune.control.sim.scenarios import SCENARIOS
 

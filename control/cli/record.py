@@ -17,14 +17,13 @@ from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.recording import plant_meta
 from pneutune.control.logs.writer import ZSTD_LEVELS
+from pneutune.control.rig.contacts import CONTACT_WARN_FACTOR
 from pneutune.control.rig.excitation import (
-    CONTACT_WARN_FACTOR,
     DEFAULT_SENSOR_TIMEOUT,
     DEFAULT_STROKE_MARGIN,
-    EXPERIMENTS,
     ProtocolRun,
-    default_sample_period,
 )
+from pneutune.control.rig.excitation_plan import EXPERIMENTS, default_sample_period
 from pneutune.control.rig.identification_run import DEFAULT_CONTACT_SPEED
 from pneutune.control.rig.supervisor import FAIL_SAFE_MODES
 
@@ -262,13 +261,12 @@ def execute(opts: RecordOptions) -> int:
     PneutuneError
         Bad input (exit 2 from the command): nothing moved.
     """
-    from pneutune.control.rig.excitation import (
+    from pneutune.control.rig.excitation import execute_protocol, protocol_settings
+    from pneutune.control.rig.excitation_plan import (
         check_stroke,
-        execute_protocol,
         experiment_protocol,
         plan,
         protocol_band,
-        protocol_settings,
         select_segments,
     )
     from pneutune.control.rig.supervisor import Supervisor

@@ -146,7 +146,7 @@ def _through_runtime(controller: Any, sc: Any, plant_cfg: PlantConfig, seed: int
                      law: Any) -> Any:
     """One scenario on the simulated rig through the deploy runtime with ``law`` as the step
     (the runtime gives the figures of the compiled closed loop for the same plant and seed)."""
-    from pneutune.control.rig.runtime import run_scenario, sim_rig_for
+    from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
 
     rig, pcfg, _ = sim_rig_for(sc, plant_cfg, seed)
     try:

@@ -10,9 +10,9 @@ What the command does, a notebook does the same way, with the same checks::
 Everything is checked before anything runs: the controller (contract 4), the rig's ``Ts`` and
 ``pwm_hz`` against the controller's, every scenario's reference against the position limits,
 the seed and the duration. Each scenario then runs under the safety supervisor
-(:mod:`.supervisor`) through :func:`~pneutune.control.rig.runtime.run_scenario`; a fault stops
-the remaining scenarios. Run logs (contract 1) are written only when ``log`` or ``log_dir`` is
-given.
+(:mod:`.supervisor`) through :func:`~pneutune.control.rig.scenario_run.run_scenario`; a fault
+stops the remaining scenarios. Run logs (contract 1) are written only when ``log`` or
+``log_dir`` is given.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from pneutune.control.sim.scenarios import Scenario, resolve_scenarios
 
 from .exec_rig import ExecRig, PipeRig, exec_command
 from .protocol import Rig
-from .runtime import ScenarioResult, run_scenario, scenario_reference, sim_rig_for
+from .scenario_run import ScenarioResult, run_scenario, scenario_reference, sim_rig_for
 from .supervisor import FAIL_SAFE_MODES, Event, Supervisor, SupervisorSettings
 from .wire import RigIOError
 

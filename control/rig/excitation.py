@@ -19,15 +19,17 @@ stop at the start). A Ctrl-C (``KeyboardInterrupt``) is handled the same way: fa
 an ``interrupted`` event, the run stops. Either way the recording keeps the completed segments
 only (:attr:`ProtocolRun.recording`), a valid log for ``identify``.
 
-Every approach onto an end stop is measured: the speed of the piston over the
-:data:`CONTACT_WINDOW` before it reached the stop is logged as an ``end_stop_contact`` event
-(a ``contact_speed`` warning when it exceeds twice the planned speed).
+The segments come from :mod:`~pneutune.control.rig.excitation_plan` (the protocol by name, the
+``--segments`` selection and its lead-ins, the stroke check). Every approach onto an end stop
+is measured (:func:`~pneutune.control.rig.contacts.measure_contacts`: the speed of the piston
+over the :data:`~pneutune.control.rig.contacts.CONTACT_WINDOW` before it reached the stop) and
+logged as an ``end_stop_contact`` event (a ``contact_speed`` warning when it exceeds twice the
+planned speed).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import fnmatch
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,16 +37,19 @@ from typing import Any
 
 import numpy as np
 
-from pneutune.control.constants import VALVES
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.recording import Recording
+from pneutune.control.rig.contacts import CONTACT_WARN_FACTOR, Contact, measure_contacts
+from pneutune.control.rig.excitation_plan import (
+    check_stroke,
+    default_sample_period,
+    experiment_protocol,
+    protocol_band,
+    select_segments,
+)
 from pneutune.control.rig.identification_run import (
     DEFAULT_CONTACT_SPEED,
-    IDENT_SAMPLE_PERIOD,
-    STOP_SIDES,
-    TRAVEL_SPEED,
     Segment,
-    move_segment,
     position_loop,
     samples_per_control,
 )
@@ -62,91 +67,11 @@ DEFAULT_STROKE_MARGIN: float = 0.02
 DEFAULT_P_MAX_ABOVE_SUPPLY: float = 1.0e5
 #: Longest sensor silence [s]: five 4 ms control periods, as in the paper's controller.yaml.
 DEFAULT_SENSOR_TIMEOUT: float = 0.02
-#: Window of the contact speed [s] before the piston reached the stop.
-CONTACT_WINDOW: float = 0.004
-#: The piston has reached the stop when it is this close to where it came to rest [m].
-CONTACT_BAND: float = 3.0e-4
-#: A contact faster than this multiple of the planned speed is a ``contact_speed`` warning.
-#: The position loop tracks the approach ramp with a lag; a piston that sticks first and then
-#: breaks away catches up faster than the ramp (1.5 times it on the paper's rig).
-CONTACT_WARN_FACTOR: float = 2.0
 #: Event codes of a protocol run (beside the supervisor's fault codes).
 EVENT_CODES: tuple[str, ...] = ("end_stop_contact", "contact_speed", "interrupted", "rig_io")
 
 #: ``progress(done, total, label)``: samples done, samples in all, the current segment's label.
 Progress = Callable[[int, int, str], None]
-#: The protocols by name.
-EXPERIMENTS: tuple[str, ...] = ("identification", "commissioning")
-#: Saturation band of the protocols' position loops, as a fraction of the stroke.
-BAND_FRACTION: float = 0.05
-#: Shortest time a constant-speed segment must hold its speed [s]; a stroke too short for it
-#: is bad input (:func:`check_stroke`).
-MIN_CONSTANT_SPEED_S: float = 0.2
-
-
-def experiment_protocol(name: str, rig_meta: Mapping[str, Any], *,
-                        contact_speed: float = DEFAULT_CONTACT_SPEED) -> list[Segment]:
-    """The segments of a named protocol for a rig.
-
-    Parameters
-    ----------
-    name : {"identification", "commissioning"}
-        The protocol.
-    rig_meta : mapping
-        The rig block (``x_min``, ``x_max``, ``Ts``: the control period).
-    contact_speed : float
-        Speed of the approaches onto the end stops [m/s].
-
-    Returns
-    -------
-    list of Segment
-
-    Raises
-    ------
-    ExperimentError
-        An unknown name or contact speed that cannot work.
-    """
-    from pneutune.control.rig.commissioning_run import commissioning_protocol
-    from pneutune.control.rig.identification_run import identification_protocol
-
-    x_min, x_max = float(rig_meta["x_min"]), float(rig_meta["x_max"])
-    if name == "identification":
-        return identification_protocol(x_min, x_max, contact_speed=contact_speed)
-    if name == "commissioning":
-        return commissioning_protocol(x_min, x_max, float(rig_meta["Ts"]),
-                                      contact_speed=contact_speed)
-    raise ExperimentError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
-
-
-def protocol_band(rig_meta: Mapping[str, Any]) -> float:
-    """Saturation band of the protocols' position loops on a rig [m]."""
-    return BAND_FRACTION * (float(rig_meta["x_max"]) - float(rig_meta["x_min"]))
-
-
-def check_stroke(segments: Sequence[Segment], rig_meta: Mapping[str, Any]) -> None:
-    """Refuse a stroke too short for the protocol's constant-speed segments.
-
-    A constant-speed segment covers a share of the stroke; at its speed it must last at least
-    :data:`MIN_CONSTANT_SPEED_S`, or it shows the break-away and no steady sliding.
-
-    Raises
-    ------
-    ExperimentError
-        Naming the first segment that does not fit, the stroke it needs and the rig's.
-    """
-    stroke = float(rig_meta["x_max"]) - float(rig_meta["x_min"])
-    for seg in segments:
-        if seg.kind != "constant_speed":
-            continue
-        speed = abs(float(seg.params.get("speed", 0.0)))
-        travel = abs(float(seg.params.get("x_to", 0.0)) - float(seg.params.get("x_from", 0.0)))
-        if speed > 0.0 and travel < speed * MIN_CONSTANT_SPEED_S:
-            need = stroke * speed * MIN_CONSTANT_SPEED_S / max(travel, 1e-12)
-            raise ExperimentError(
-                f"segment {seg.label} needs a stroke of at least {need * 1e3:.1f} mm "
-                f"({MIN_CONSTANT_SPEED_S:g} s at {speed * 1e3:g} mm/s within its share of the "
-                f"stroke); the rig's stroke x_max - x_min is {stroke * 1e3:.1f} mm (leave the "
-                f"part out with --segments, or check the rig block)")
 
 
 def protocol_settings(rig_meta: Mapping[str, Any], *, margin: float = DEFAULT_STROKE_MARGIN,
@@ -192,146 +117,6 @@ def protocol_settings(rig_meta: Mapping[str, Any], *, margin: float = DEFAULT_ST
                               sensor_timeout_s=sensor_timeout_s, p0=p0, p_s_model=p_s,
                               theta_min=wide[0], theta_max=wide[1],
                               x_span_margin=0.01 + m)
-
-
-def select_segments(segments: Sequence[Segment], patterns: str | Sequence[str] | None,
-                    rig_meta: Mapping[str, Any] | None = None) -> list[Segment]:
-    """The segments a ``--segments`` selection names, in protocol order, with their lead-ins.
-
-    Parameters
-    ----------
-    segments : sequence of Segment
-        The whole protocol.
-    patterns : str or sequence of str or None
-        Comma-separated (or listed) shell-style patterns, each matched against every
-        segment's group (``valves:a``, ``friction``, ...) and label (``constant_speed:*``);
-        None or empty: every segment.
-    rig_meta : mapping, optional
-        The rig block. Given, a selection that starts inside a group gets the lead-in that
-        puts the piston where the protocol would have it (:func:`lead_in`), so that no move
-        is faster than planned and no end stop is met but by its approach.
-
-    Returns
-    -------
-    list of Segment
-
-    Raises
-    ------
-    ExperimentError
-        A pattern that matches no segment (naming it and the groups there are).
-    """
-    if patterns is None:
-        return list(segments)
-    items = [p.strip() for p in (patterns.split(",") if isinstance(patterns, str) else patterns)]
-    items = [p for p in items if p]
-    if not items:
-        return list(segments)
-    keep = [False] * len(segments)
-    for pat in items:
-        hits = [i for i, s in enumerate(segments)
-                if fnmatch.fnmatchcase(s.group, pat) or fnmatch.fnmatchcase(s.label, pat)]
-        if not hits:
-            groups = list(dict.fromkeys(s.group for s in segments))
-            raise ExperimentError(f"--segments: {pat!r} names no segment of the protocol; its "
-                                  f"groups are {', '.join(groups)} (or give a label pattern "
-                                  f"such as 'constant_speed:*')")
-        for i in hits:
-            keep[i] = True
-    out: list[Segment] = []
-    for i, seg in enumerate(segments):
-        if not keep[i]:
-            continue
-        if rig_meta is not None and (i == 0 or not keep[i - 1]):
-            out += lead_in(segments, i, rig_meta)
-        out.append(seg)
-    return out
-
-
-def _group_start(segments: Sequence[Segment], i: int) -> int:
-    j = i
-    while j > 0 and segments[j - 1].group == segments[i].group:
-        j -= 1
-    return j
-
-
-def lead_in(segments: Sequence[Segment], i: int, rig_meta: Mapping[str, Any]) -> list[Segment]:
-    """What must run before segment ``i`` when the segments before it in its group do not.
-
-    A valve test (a segment with :attr:`~Segment.contacts`) gets its group's approach onto the
-    stop and the preparations that follow it, and the preparations right before it; any other
-    segment inside a group gets a :class:`~pneutune.control.rig.identification_run.Move` at
-    :data:`~pneutune.control.rig.identification_run.TRAVEL_SPEED` to where the segments before
-    it leave the piston (with a logged reference when the protocol logs references). A group's
-    first segment needs none.
-
-    Parameters
-    ----------
-    segments : sequence of Segment
-        The whole protocol.
-    i : int
-        The first selected segment of a run of selected segments.
-    rig_meta : mapping
-        The rig block.
-
-    Returns
-    -------
-    list of Segment
-    """
-    start = _group_start(segments, i)
-    if start == i:
-        return []
-    seg = segments[i]
-    if seg.contacts:
-        lead = []
-        for j in range(start, i):
-            if segments[j].kind not in ("approach", "prepare"):
-                break
-            lead.append(segments[j])
-        before = []
-        for j in range(i - 1, start + len(lead) - 1, -1):
-            if segments[j].kind != "prepare":
-                break
-            before.insert(0, segments[j])
-        return lead + before
-    for j in range(i - 1, start - 1, -1):
-        p = segments[j].params
-        pos = next((p[k] for k in ("x_to", "target", "x", "center") if k in p), None)
-        if pos is not None:
-            x_min, x_max = float(rig_meta["x_min"]), float(rig_meta["x_max"])
-            return [move_segment(f"move:{seg.label}", "hold", float(pos), TRAVEL_SPEED,
-                                 protocol_band(rig_meta), x_max - x_min, seg.group,
-                                 {"x": float(pos)},
-                                 logged=any(s.reference is not None for s in segments))]
-    return []
-
-
-@dataclass(frozen=True)
-class Contact:
-    """One measured approach onto an end stop.
-
-    Attributes
-    ----------
-    stop : str
-        ``x_min`` or ``x_max``.
-    segment : str
-        Label of the approach segment.
-    t : float
-        Time the piston reached the stop [s].
-    speed : float
-        Its speed toward the stop over :data:`CONTACT_WINDOW` before [m/s].
-    planned : float
-        The approach's planned speed [m/s].
-    """
-
-    stop: str
-    segment: str
-    t: float
-    speed: float
-    planned: float
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain dict (JSON)."""
-        return dataclasses.asdict(self)
 
 
 @dataclass
@@ -440,7 +225,8 @@ def execute_protocol(rig: Rig, segments: Sequence[Segment], band: float, *,
     rig : Rig
         The rig, sampled every ``rig.Ts``. It is not closed here.
     segments : sequence of Segment
-        The protocol (or the part of it to run, :func:`select_segments`).
+        The protocol (or the part of it to run,
+        :func:`~pneutune.control.rig.excitation_plan.select_segments`).
     band : float
         Saturation band of the position loop of reference segments [m].
     supervisor : Supervisor, optional
@@ -595,7 +381,8 @@ def record_protocol(rig: Rig, name: str, *, segments: str | Sequence[str] | None
     name : {"identification", "commissioning"}
         The protocol.
     segments : str or sequence of str, optional
-        ``--segments`` patterns (:func:`select_segments`); default the whole protocol.
+        ``--segments`` patterns (:func:`~pneutune.control.rig.excitation_plan.select_segments`);
+        default the whole protocol.
     contact_speed : float
         Speed of the approaches onto the end stops [m/s].
     settings : SupervisorSettings, optional
@@ -624,13 +411,6 @@ def record_protocol(rig: Rig, name: str, *, segments: str | Sequence[str] | None
                             fail_safe=fail_safe, record_truth=record_truth, progress=progress)
 
 
-def default_sample_period(name: str, control_Ts: float) -> float:
-    """The sample period a protocol logs at by default [s]: 0.5 ms for the identification run
-    (:data:`~pneutune.control.rig.identification_run.IDENT_SAMPLE_PERIOD`, which resolves the
-    moving mass), the control period for the commissioning run."""
-    return IDENT_SAMPLE_PERIOD if name == "identification" else control_Ts
-
-
 def record_on_sim(name: str, plant_cfg: Any, *, seed: int | None = None,
                   sample_period: float | None = None, x0: float | None = None,
                   record_truth: bool = True, progress: Progress | None = None,
@@ -646,7 +426,8 @@ def record_on_sim(name: str, plant_cfg: Any, *, seed: int | None = None,
     seed : int, optional
         Sensor-noise seed; default the plant's ``sim.seed``.
     sample_period : float, optional
-        Sample period [s], dividing ``rig.Ts``; default :func:`default_sample_period`.
+        Sample period [s], dividing ``rig.Ts``; default
+        :func:`~pneutune.control.rig.excitation_plan.default_sample_period`.
     x0 : float, optional
         Where the piston rests at the start [m]; default mid-stroke.
     record_truth : bool
@@ -670,167 +451,15 @@ def record_on_sim(name: str, plant_cfg: Any, *, seed: int | None = None,
     return record_protocol(rig, name, record_truth=record_truth, progress=progress, **kwargs)
 
 
-def _what(seg: Segment) -> str:
-    """What drives a segment, in words (for the plan)."""
-    p = seg.params
-    if seg.reference is not None:
-        if seg.kind == "constant_speed":
-            return (f"position loop on a ramp {p['x_from'] * 1e3:.1f} -> {p['x_to'] * 1e3:.1f} mm "
-                    f"at {abs(p['speed']) * 1e3:g} mm/s")
-        if seg.kind == "acceleration":
-            return (f"position loop on a sine of {p['amplitude'] * 1e3:.1f} mm at {p['freq']:g} Hz "
-                    f"about {p['center'] * 1e3:.1f} mm")
-        return f"position loop holding {p.get('x', math.nan) * 1e3:.1f} mm"
-    if seg.controller is not None:
-        if "target" in p:
-            return (f"move to {p['target'] * 1e3:.1f} mm at {p['speed'] * 1e3:g} mm/s from "
-                    f"wherever the piston is, then hold")
-        if seg.kind == "constant_speed":
-            return (f"velocity loop at {p['speed'] * 1e3:g} mm/s from {p['x_from'] * 1e3:.1f} to "
-                    f"{p['x_to'] * 1e3:.1f} mm")
-        return f"position loop holding {p.get('x', math.nan) * 1e3:.1f} mm"
-    d = seg.duties if seg.duties is not None else np.zeros(4)
-    opened = [f"{v}={u:g}" for v, u in zip(VALVES, d.tolist(), strict=True) if u > 0.0]
-    return "duties " + (", ".join(opened) if opened else "all closed") + " (open loop)"
-
-
-def _planned_speed(seg: Segment) -> float:
-    """Largest speed a segment asks for [m/s] (NaN for open-loop duties)."""
-    p = seg.params
-    if seg.kind == "acceleration" and "amplitude" in p:
-        return abs(p["amplitude"]) * 2.0 * math.pi * p["freq"]
-    if "speed" in p and seg.kind in ("constant_speed", "approach", "hold"):
-        return abs(float(p["speed"]))
-    if seg.reference is not None or seg.controller is not None:
-        return 0.0
-    return math.nan
-
-
-def plan(segments: Sequence[Segment], rig_meta: Mapping[str, Any],
-         settings: SupervisorSettings | None = None) -> dict[str, Any]:
-    """What a protocol will do on a rig, worked out without touching it (``record --plan``).
-
-    Parameters
-    ----------
-    segments : sequence of Segment
-        The segments to run.
-    rig_meta : mapping
-        The rig block.
-    settings : SupervisorSettings, optional
-        The supervisor's thresholds, reported with the plan.
-
-    Returns
-    -------
-    dict
-        ``segments`` (label, group, kind, duration_s, what), ``total_s``, ``peak_duty``,
-        ``peak_speed`` (m/s and the segment), ``contacts`` (stop, segment, speed),
-        ``open_loop_motion`` (full-duty segments that move the piston: bursts and brakes),
-        ``pressures`` (what the valve tests reach), ``limits``.
-    """
-    control_Ts = float(rig_meta["Ts"])
-    rows = [{"label": s.label, "group": s.group, "kind": s.kind,
-             "duration_s": round(s.duration / control_Ts) * control_Ts, "what": _what(s)}
-            for s in segments]
-    peak_duty = 0.0
-    for s in segments:
-        if s.duties is not None and s.reference is None and s.controller is None:
-            peak_duty = max(peak_duty, float(np.max(s.duties)))
-        else:
-            peak_duty = 1.0  # the closed loops saturate at full duty
-    speeds = [(_planned_speed(s), s.label) for s in segments]
-    speeds = [(v, lab) for v, lab in speeds if math.isfinite(v)]
-    top = max(speeds, default=(0.0, ""))
-    p0, p_s = float(rig_meta["p0"]), float(rig_meta["p_s"])
-    pressures = []
-    for chamber in ("a", "b"):
-        tests = [s for s in segments if s.params.get("chamber") == chamber
-                 and s.kind in ("valve_charge", "valve_discharge")]
-        if tests:
-            valves = sorted({str(s.params.get("valve")) for s in tests})
-            pressures.append({"chamber": chamber, "low_pa": p0, "high_pa": p_s,
-                              "valves": valves, "segments": len(tests)})
-    out: dict[str, Any] = {
-        "segments": rows, "total_s": float(sum(r["duration_s"] for r in rows)),
-        "peak_duty": peak_duty, "peak_speed": {"m_per_s": top[0], "segment": top[1]},
-        "contacts": [{"stop": s.contacts[0], "segment": s.label,
-                      "speed_m_per_s": float(s.params["speed"])}
-                     for s in segments if s.kind == "approach"],
-        "open_loop_motion": [{"segment": s.label, "duration_s": s.duration}
-                             for s in segments if s.kind in ("burst", "brake")],
-        "pressures": pressures,
-    }
-    if settings is not None:
-        out["limits"] = {"x_min": settings.x_min, "x_max": settings.x_max,
-                         "p_max": settings.p_max, "supply_min": settings.supply_min,
-                         "sensor_timeout_s": settings.sensor_timeout_s}
-    return out
-
-
-def measure_contacts(rec: Recording, segments: Sequence[Segment]) -> list[Contact]:
-    """The end-stop contacts of the approach segments in a recording.
-
-    The piston comes to rest on the stop during the approach or the segment after it; it has
-    reached the stop at the first sample within :data:`CONTACT_BAND` of that resting position,
-    and its speed is the position's change over the :data:`CONTACT_WINDOW` before.
-
-    Parameters
-    ----------
-    rec : Recording
-        The run; ``rec.segments_`` starts the segments.
-    segments : sequence of Segment
-        The segments of the recording, in order.
-
-    Returns
-    -------
-    list of Contact
-    """
-    starts = [round(t / rec.Ts) for t, *_ in rec.segments_] + [rec.n]
-    w = max(1, round(CONTACT_WINDOW / rec.Ts))
-    out: list[Contact] = []
-    for i, seg in enumerate(segments):
-        if seg.kind != "approach" or not seg.contacts or i + 1 >= len(starts):
-            continue
-        stop = seg.contacts[0]
-        side = STOP_SIDES[stop]
-        k0 = starts[i]
-        k1 = starts[min(i + 2, len(starts) - 1)]  # the approach and the segment after it
-        x = rec.sensors_[k0:k1, 0]
-        rest_n = max(2, round(0.2 / rec.Ts))
-        if x.size < rest_n + w + 1:
-            continue
-        x_end = float(np.median(x[-rest_n:]))
-        near = np.nonzero(side * (x - x_end) >= -CONTACT_BAND)[0]
-        if near.size == 0 or near[0] < w:
-            continue
-        kc = int(near[0])
-        speed = side * (x[kc] - x[kc - w]) / (w * rec.Ts)
-        out.append(Contact(stop, seg.label, (k0 + kc) * rec.Ts, float(speed),
-                           float(seg.params.get("speed", math.nan))))
-    return out
-
-
 __all__ = [
-    "BAND_FRACTION",
-    "CONTACT_BAND",
-    "CONTACT_WARN_FACTOR",
-    "CONTACT_WINDOW",
     "DEFAULT_P_MAX_ABOVE_SUPPLY",
     "DEFAULT_SENSOR_TIMEOUT",
     "DEFAULT_STROKE_MARGIN",
     "EVENT_CODES",
-    "EXPERIMENTS",
-    "MIN_CONSTANT_SPEED_S",
-    "Contact",
     "Progress",
     "ProtocolRun",
-    "check_stroke",
-    "default_sample_period",
     "execute_protocol",
-    "experiment_protocol",
-    "measure_contacts",
-    "protocol_band",
     "protocol_settings",
     "record_on_sim",
     "record_protocol",
-    "select_segments",
 ]

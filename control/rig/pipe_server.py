@@ -132,10 +132,10 @@ def serve_main(args: argparse.Namespace) -> int:
     """``serve``: the simulated rig on this process's stdin/stdout until ``C`` or end of input.
 
     ``--scenario`` takes a scenario's name (the rig of
-    :func:`~pneutune.control.rig.runtime.sim_rig_for`: its plant changes, the piston at rest at
-    its x_r(0)) or an experiment's name
-    (:data:`~pneutune.control.rig.excitation.EXPERIMENTS`: the plant as it is, the piston at
-    rest mid-stroke), so that one driver command line serves ``deploy`` and ``record``.
+    :func:`~pneutune.control.rig.scenario_run.sim_rig_for`: its plant changes, the piston at
+    rest at its x_r(0)) or an experiment's name
+    (:data:`~pneutune.control.rig.excitation_plan.EXPERIMENTS`: the plant as it is, the piston
+    at rest mid-stroke), so that one driver command line serves ``deploy`` and ``record``.
 
     A bad plant or scenario is answered with ``E`` (the client waits for the hello) and one
     ``error:`` line on stderr; exit status 2.
@@ -152,8 +152,8 @@ def serve_main(args: argparse.Namespace) -> int:
         Exit status: that of :func:`serve`, or 2 for a bad plant or scenario.
     """
     from pneutune.control.contracts.plant import load_plant
-    from pneutune.control.rig.excitation import EXPERIMENTS
-    from pneutune.control.rig.runtime import sim_rig_for
+    from pneutune.control.rig.excitation_plan import EXPERIMENTS
+    from pneutune.control.rig.scenario_run import sim_rig_for
     from pneutune.control.sim.scenarios import resolve_scenarios
 
     try:

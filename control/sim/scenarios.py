@@ -79,7 +79,7 @@ def move_and_hold(t: np.ndarray, x_from: float, x_to: float, move_s: float) -> n
 
     The edge of :func:`smooth_square` (peak speed 1.875·|Δx|/``move_s``), starting at t = 0;
     deploy's homing move (``deploy --home``,
-    :func:`pneutune.control.rig.runtime.homing_move`).
+    :func:`pneutune.control.rig.homing.homing_move`).
     """
     if not move_s > 0.0:
         raise ExperimentError(f"the move must last > 0 s, got {move_s}")
