@@ -1,14 +1,18 @@
-"""``deploy``: load a controller.yaml into the runtime and run it against a rig, supervised."""
+"""``deploy``: load a controller.yaml into the runtime and run it against a rig, supervised; or,
+with ``--emit c``, write it as the C99 folder a target compiles."""
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.cli.common import ArgumentParser, info, make_parser, print_json, run_cli
 from pneutune.control.constants import HOME_MODES
+from pneutune.control.law.cbuild import REALS
 from pneutune.control.rig.deploy import DeployResult, deploy
+from pneutune.control.rig.emit_c import EMIT_FORMATS, EmitResult, emit_c
 from pneutune.control.rig.supervisor import FAIL_SAFE_MODES
 
 #: Where logs go by default: ``<DEFAULT_LOG_DIR>/<scenario>.mcap``.
@@ -52,6 +56,17 @@ exhaust vents both chambers instead), the event is logged on /rig/events and dep
 Warnings (logged, the run goes on): the supply 1 bar away from the model's, or theta-hat of the
 mass or friction held on its bound: run identify again.
 
+For a target (--emit c --out DIR): nothing runs. The controller, checked as above, is written
+as C99 a PLC or a microcontroller compiles without Python or a YAML parser: the law, the safety
+supervisor and the controller API (control/law/c), and pt_config.c holding the controller as
+`const pt_config_t PT_CONFIG` (the packed law and supervisor vectors bit for bit, the
+--fail-safe duties, the file's sha256 and its provenance), with a Makefile and a README.txt:
+build with `cc -std=c99 -O2 -c *.c` and link with -lm; -DPT_REAL_FLOAT builds in float (--real
+float makes that the Makefile's default and checks every value fits a float). DIR must be new,
+empty, or an earlier emit (replaced; its build products go with it); a folder holding anything
+else is bad input (exit 2). A setting the C law does not handle is bad input too. The call
+sequence, the memory footprint and a bare-metal example: docs/embedded.md.
+
 Exit status: 0 done (warnings allowed); 2 bad input (nothing ran); 3 a supervisor fault stopped
 the run (log written, `error:` line on stderr); 1 an internal failure.
 """
@@ -69,6 +84,10 @@ examples:
   deploy reports/tune/controller.yaml --rig exec:"./rig_driver" --scenario all --home always
          (every scenario starts after a move to its x_r(0) and 1 s holding there)
   identify reports/deploy/sine-0.5hz.mcap         # close the loop: log -> identify -> tune
+  deploy reports/tune/controller.yaml --emit c --out build/axis1
+         (the C99 folder for a target; cd build/axis1 && make, or cc -std=c99 -O2 -c *.c)
+  deploy data/controller-paper.yaml --emit c --out build/axis1 --fail-safe exhaust --real float
+         --json
 
 scenarios: sine-0.5hz (default), sine-0.75hz, sine-0.5hz-heavy, square-0.5hz,
 disturbance-0.5hz; table1 = the first four; all = all five; or a list such as
@@ -121,7 +140,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                              "(a 3 s quintic, then 1 s holding): auto (default) when it rests "
                              "more than 1 mm away, always, or off (a distant piston is then "
                              "the fault start_position)")
+    parser.add_argument("--emit", choices=EMIT_FORMATS, metavar="c",
+                        help="run nothing: write the controller as the C99 folder a target "
+                             "compiles (needs --out; below)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="with --emit c: the folder to write (new, empty, or an earlier emit)")
+    parser.add_argument("--real", choices=REALS, default=None,
+                        help="with --emit c: the precision the folder's Makefile builds, double "
+                             "(default) or float (-DPT_REAL_FLOAT; every value checked to fit)")
     args = parser.parse_args(argv)
+
+    if args.emit is not None or args.out is not None or args.real is not None:
+        return _emit(parser, args)
 
     # everything is checked before anything runs (the library's own checks)
     result = deploy(args.controller, rig=args.rig, scenarios=args.scenario, seed=args.seed,
@@ -147,6 +177,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         info(f"error: fault {f['code']} {where} {f['scenario']} at t={f['t']:.4f} s: "
              f"{f['message']} (log: {log or 'none written'})")
     return result.exit_status
+
+
+#: Flags that only a run uses, with their defaults: given with --emit c, they are refused.
+_RUN_ONLY: tuple[tuple[str, str, Any], ...] = (
+    ("--rig", "rig", "sim"), ("--scenario", "scenario", "sine-0.5hz"),
+    ("--realtime", "realtime", False), ("--log", "log", None), ("--seed", "seed", None),
+    ("--duration", "duration", None), ("--plots", "plots", None), ("--home", "home", "auto"),
+)
+
+
+def _emit(parser: ArgumentParser, args: argparse.Namespace) -> int:
+    """``--emit c``: write the folder, print what was written; nothing runs."""
+    if args.emit is None:
+        parser.error(f"{'--out' if args.out is not None else '--real'} needs --emit c")
+    if args.out is None:
+        parser.error("--emit c needs --out DIR")
+    for flag, dest, default in _RUN_ONLY:
+        if getattr(args, dest) != default:
+            parser.error(f"{flag} does not apply with --emit c (nothing runs)")
+    result = emit_c(args.controller, args.out, fail_safe=args.fail_safe,
+                    real=args.real or "double")
+    if args.json:
+        print_json(result.summary())
+    else:
+        _print_emitted(result)
+    return 0
+
+
+def _print_emitted(result: EmitResult) -> None:
+    """The folder, its files, the controller and the build line."""
+    info(f"wrote {result.out}/: {', '.join(result.files)}")
+    info(f"controller {result.controller} ({result.variant}), sha256 {result.sha256}, "
+         f"fail-safe {result.fail_safe}")
+    info(f"build: cd {result.out} && {result.build_line}, then link the objects with -lm "
+         f"(or make; README.txt)")
 
 
 def _print_summary(result: DeployResult, plots: str | None) -> None:
