@@ -12,15 +12,18 @@ valve at commanded duty u (the PWM curve) and midpoint values p_k, V_k over each
 of whole PWM periods make the on/off ripple of the valves cancel at the window ends. Position
 increments replace dV/dt, so nothing is differentiated.
 
-Two alternating solves (block coordinate descent):
+D_a, D_b and the leak come first from the stretches with a chamber's valves shut, where the log
+has them (:mod:`.valve_leak`), and are held there. Then two alternating solves (block
+coordinate descent):
 
-1. curves fixed: nonlinear least squares (``scipy.optimize.least_squares``, bounded) for C, b of
-   the four valves, the leak conductance and the constant terms D_a, D_b, with a weak prior on
-   b (:data:`B_PRIOR` ± :data:`B_PRIOR_SD`, weighted like one window) that decides b only where
-   the log cannot;
+1. curves fixed: nonlinear least squares (``scipy.optimize.least_squares``, bounded, its
+   Jacobian from :mod:`.valve_jacobian`) for C, b of the four valves, the leak conductance and
+   the constant terms D_a, D_b, with a weak prior on b (:data:`B_PRIOR` ± :data:`B_PRIOR_SD`,
+   weighted like one window) that decides b only where the log cannot;
 2. C, b fixed: the equations are linear in the curve values at the knots, so each chamber's two
-   curves come from a QP in cvxpy: monotone, 0 <= r <= 1, r(0) = 0, r(1) = 1 (which fixes the
-   scale between C and r), with a small curvature penalty where the data say little.
+   curves come from a QP (:func:`~.valve_curves.chamber_curves`): monotone, 0 <= r <= 1,
+   r(0) = 0, r(1) = 1 (which fixes the scale between C and r), with a small curvature penalty
+   where the data say little.
 
 Then the timing stage (:mod:`.valve_timing`): r(u) is exact only while the duties are steady
 over a PWM period. With the valves' delays, minimum pulses and the carrier phase searched, the
@@ -37,7 +40,6 @@ import contextlib
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-import cvxpy as cp
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
@@ -48,17 +50,15 @@ from pneutune.control.physics.pwm import effective_open_fraction
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
+from .valve_curves import chamber_curves, curve_switching, default_knots, interp_weights
 from .valve_flows import A_IN, A_OUT, B_IN, B_OUT, LEAK, PortFlows
+from .valve_jacobian import grouped_jacobian, valve_fit_groups
+from .valve_leak import closed_stretches
 from .valve_onsets import Onset, step_onsets
 from .valve_residuals import chamber_window_residuals, knot_window_sums
 from .valve_timing import LOOP_DELAY_TOLERANCE as LOOP_DELAY_TOLERANCE  # re-exported
 from .valve_timing import ONSET_MARGIN as ONSET_MARGIN  # re-exported
 from .valve_timing import OpenFractions, Timing, TimingCost, search_timings, timing_bounds
-
-try:  # scipy's own step rules of jac='2-point' (private: without them, least_squares' default)
-    from scipy.optimize._numdiff import _adjust_scheme_to_bounds, _compute_absolute_step
-except ImportError:  # pragma: no cover - a scipy that moved them
-    _adjust_scheme_to_bounds = _compute_absolute_step = None
 
 #: Parameter scaling for the solver: C in 1e-9 m^3/(s Pa), leak in 1e-10, D in 1e3 Pa/s.
 _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
@@ -69,6 +69,11 @@ _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
 B_PRIOR, B_PRIOR_SD = 0.25, 0.1
 #: Duty below which a sample does not count as "the valve was commanded open".
 _OPEN_DUTY = 1e-6
+#: A valve counts as fully open for its C and b only if the log holds it at duty 1 for this long
+#: at a stretch [s]: a whole charge or vent (the identification run's last 1.5 s and more). A
+#: closed-loop log has every valve at duty 1 in bursts of 0.01-0.28 s (benchmarks/fleet.py,
+#: kind c), which left C and b ranges that missed the truth on 7 of 12 fleet plants.
+FULL_OPEN_PIN_S = 0.5
 
 
 @contextlib.contextmanager
@@ -102,29 +107,22 @@ def pwm_window(Ts: float, pwm_hz: float, lo: int = 8, hi: int = 60) -> int:
     return best
 
 
-def _longest_run(flags: np.ndarray) -> int:
-    """Length of the longest run of True in ``flags``."""
+def longest_run(flags: np.ndarray) -> int:
+    """Length of the longest run of True in ``flags``.
+
+    Parameters
+    ----------
+    flags : ndarray of bool
+        The samples.
+
+    Returns
+    -------
+    int
+        The most consecutive True samples (0 for none).
+    """
     padded = np.concatenate([[0], np.asarray(flags, dtype=np.int8), [0]])
     edges = np.flatnonzero(np.diff(padded))
     return int(np.max(edges[1::2] - edges[0::2])) if edges.size else 0
-
-
-def default_knots() -> np.ndarray:
-    """Duty knots of the curves: 0.0125 apart below 0.2 (dead zone), 0.025 above."""
-    return np.unique(np.round(np.concatenate([np.arange(0.0, 0.2, 0.0125),
-                                              np.arange(0.2, 1.0 + 1e-9, 0.025)]), 10))
-
-
-def interp_weights(u: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """Matrix W (len(u), len(knots)) with W @ r = piecewise-linear r at u."""
-    u = np.clip(u, knots[0], knots[-1])
-    j = np.clip(np.searchsorted(knots, u, side="right") - 1, 0, len(knots) - 2)
-    frac = (u - knots[j]) / (knots[j + 1] - knots[j])
-    W = np.zeros((len(u), len(knots)))
-    rows = np.arange(len(u))
-    W[rows, j] = 1.0 - frac
-    W[rows, j + 1] = frac
-    return W
 
 
 class ValveIdentifier(Identifier):
@@ -133,7 +131,7 @@ class ValveIdentifier(Identifier):
     Parameters
     ----------
     knots : array, optional
-        Duty knots of the curves (default :func:`default_knots`).
+        Duty knots of the curves (default :func:`~.valve_curves.default_knots`).
     iterations : int
         Alternations between the NLS and the QP.
     smooth : float
@@ -184,7 +182,8 @@ class ValveIdentifier(Identifier):
     max_duty_ : ndarray (4,)
         Highest duty each valve was commanded in the fitted part.
     full_open_s_ : ndarray (4,)
-        Longest stretch of consecutive fitted samples each valve was commanded duty 1 [s].
+        Longest stretch of consecutive fitted samples each valve was commanded duty 1 [s]
+        (compared with :data:`FULL_OPEN_PIN_S`).
     ratios_ : ndarray (N-1, 4)
         Open fraction of each valve in each sample used by the final fit (the PWM curves', or
         the exact opening of the timing stage).
@@ -351,71 +350,23 @@ class ValveIdentifier(Identifier):
         self._last_eval = (theta.copy(), ratios, weights, self._b_scale, res)
         return res
 
-    def _jac_groups(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The parameters perturbed together in one residual evaluation, and their rows.
-
-        Rows: chamber A's windows, chamber B's, the four b priors; parameters: C, b of a_in,
-        a_out, b_in, b_out, the leak, D_a, D_b. A chamber's valves and D move only its windows
-        (and b its prior), so a parameter of A and one of B are perturbed together: six
-        evaluations per Jacobian instead of eleven.
-
-        Returns
-        -------
-        list of (ndarray, ndarray)
-            Per group: the parameter indices, and per parameter the rows it moves (an object
-            array of index arrays).
-        """
-        na, nb = len(self._k0[0]), len(self._k0[1])
-        rows_a, rows_b = np.arange(na), na + np.arange(nb)
-        prior = na + nb + np.arange(4)
-        rows = []
-        for j in range(8):
-            r = rows_a if j < 4 else rows_b
-            rows.append(np.append(r, prior[j // 2]) if j % 2 else r)  # b: its prior too
-        rows += [np.concatenate([rows_a, rows_b]), rows_a, rows_b]
-        out = []
-        for cols in ([0, 4], [1, 5], [2, 6], [3, 7], [8], [9, 10]):
-            held = np.empty(len(cols), dtype=object)
-            held[:] = [rows[j] for j in cols]
-            out.append((np.array(cols), held))
-        return out
+    def _residuals_at(self, theta: np.ndarray, ratios: np.ndarray,
+                      weights: Sequence[np.ndarray] | None = None) -> np.ndarray:
+        """:meth:`_residuals` at ``theta``: those of the evaluation just made there, if it
+        was (same ratios, weights and b-prior scale), else evaluated."""
+        last = getattr(self, "_last_eval", None)
+        if (last is not None and last[1] is ratios and last[2] is weights
+                and last[3] == self._b_scale and np.array_equal(last[0], theta)):
+            return last[4]
+        return self._residuals(theta, ratios, weights)
 
     def _jacobian(self, lo: np.ndarray, hi: np.ndarray) -> Callable[..., np.ndarray] | str:
-        """The Jacobian of :meth:`_residuals` for ``least_squares`` with these bounds.
-
-        The numbers of ``least_squares``'s default ``jac='2-point'``: the same steps
-        (scipy's, adjusted to the bounds alike), each column the difference of two residual
-        evaluations over its step, the rows a parameter does not move ``0 / step`` (a
-        negative zero for a step turned back at a bound, as there). The two chambers'
-        parameters are perturbed together (:meth:`_jac_groups`), and the residuals at the
-        point come from the evaluation ``least_squares`` just made there.
-        """
-        if _compute_absolute_step is None:  # pragma: no cover
-            return "2-point"
-        groups = self._jac_groups()
-
-        def jac(theta: np.ndarray, ratios: np.ndarray,
-                weights: Sequence[np.ndarray] | None = None) -> np.ndarray:
-            last = getattr(self, "_last_eval", None)
-            if (last is not None and last[1] is ratios and last[2] is weights
-                    and last[3] == self._b_scale and np.array_equal(last[0], theta)):
-                f0 = last[4]
-            else:
-                f0 = self._residuals(theta, ratios, weights)
-            h = _compute_absolute_step(None, theta, f0, "2-point")
-            h, _ = _adjust_scheme_to_bounds(theta, h, 1, "1-sided", lo, hi)
-            dx = (theta + h) - theta
-            J = np.zeros((len(theta), len(f0)))  # transposed, as scipy fills it
-            J /= dx[:, None]
-            for cols, rows in groups:
-                x = theta.copy()
-                x[cols] = theta[cols] + h[cols]
-                df = self._residuals(x, ratios, weights) - f0
-                for j, r in zip(cols, rows, strict=True):
-                    J[j, r] = df[r] / dx[j]
-            return J.T
-
-        return jac
+        """The Jacobian of :meth:`_residuals` for ``least_squares`` with these bounds: the
+        numbers of its ``jac='2-point'``, the two chambers' parameters perturbed together
+        (:func:`~.valve_jacobian.grouped_jacobian`), the residuals at the point from the
+        evaluation ``least_squares`` just made there."""
+        groups = valve_fit_groups(len(self._k0[0]), len(self._k0[1]))
+        return grouped_jacobian(self._residuals, self._residuals_at, groups, lo, hi)
 
     def _least_squares(self, theta: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                        ratios: np.ndarray, weights: Sequence[np.ndarray] | None = None,
@@ -442,98 +393,18 @@ class ValveIdentifier(Identifier):
             known = self._window_sum(vol + self._Ts * Dc + g * sgn * L, ch)
             Ai = self._knot_window_sum(g * phi[i], self._Wu[i], ch)
             Aj = self._knot_window_sum(g * phi[j], self._Wu[j], ch)
-            y = dp - known
-            wt = self._wt[ch][:, None] / 1e3
-            A = np.hstack([Ai, Aj]) * wt
-            y = y * wt[:, 0]
-            r = cp.Variable(2 * self._K)
-            D2 = np.diff(np.eye(self._K), 2, axis=0)
-            lam = self.smooth * float(np.sum(A * A)) / self._K
-            ri, rj = r[:self._K], r[self._K:]
-            cons = [ri[0] == 0, rj[0] == 0, ri[-1] == 1, rj[-1] == 1, r >= 0, r <= 1,
-                    cp.diff(ri) >= 0, cp.diff(rj) >= 0]
-            obj = cp.Minimize(cp.sum_squares(A @ r - y)
-                              + lam * (cp.sum_squares(D2 @ ri) + cp.sum_squares(D2 @ rj)))
-            prob = cp.Problem(obj, cons)
-            prob.solve(solver=cp.CLARABEL if "CLARABEL" in cp.installed_solvers() else None)
-            if r.value is None:  # pragma: no cover - solver failure
-                raise IdentificationError(self._path, f"the PWM-curve QP of chamber "
-                                          f"{'AB'[ch]} failed ({prob.status})")
-            vals = np.clip(np.asarray(r.value).ravel(), 0.0, 1.0)
-            curves[i] = np.maximum.accumulate(vals[:self._K])
-            curves[j] = np.maximum.accumulate(vals[self._K:])
+            curves[i], curves[j] = chamber_curves(Ai, Aj, dp - known, self._wt[ch], self.smooth,
+                                                  self._path, "AB"[ch])
         return curves
 
     def _closed_stretches(self) -> tuple[list[float | None], list[float], float | None, float]:
-        """D_a, D_b [Pa/s], the leak conductance and standard errors, from shut valves.
-
-        Wherever a chamber's two valves stay shut (for at least a window, and for a PWM period
-        before it), Eq. (5) holds no valve flow: the pressure less the volume term changes at
-        ``D - g φ_leak C_leak`` (chamber A; ``+`` for B), with φ_leak the leak flow per unit
-        conductance (ISO 6358 with b = 0) and g = n R T0 / V. A straight line through each such
-        stretch gives its slope (far more precisely than window increments), and a weighted
-        linear least squares over all stretches of both chambers separates D_a, D_b and C_leak
-        when the stretches see different pressure differences across the seal (a chamber held
-        at supply with the other vented, and both at ambient, as the identification run has).
-        None where a chamber never has such a stretch.
-        """
-        w = self.window_
-        rows, rhs, var = [], [], []
-        phi_unit = self._flow(LEAK, 1.0, 0.0)
-        for ch, (V, vol, p, sgn) in enumerate(((self._Va, self._vol_a, self._pa_raw, -1.0),
-                                               (self._Vb, self._vol_b, self._pb_raw, 1.0))):
-            uc = self._u[:, 2 * ch:2 * ch + 2]
-            shut = np.all(uc <= 0.0, axis=1) & self._mask_samples
-            ok = shut.copy()
-            for k in range(1, self._lookback + 1):
-                ok[k:] &= shut[:-k]
-            ok[:self._lookback] = False
-            cs = np.concatenate([[0.0], np.cumsum(vol)])
-            y = p[: len(cs)] - cs
-            leak_rate = sgn * self._nRT / V * phi_unit  # dp/dt per unit leak conductance
-            edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
-            for a, b in zip(edges[::2], edges[1::2], strict=True):
-                if b - a < w:
-                    continue
-                tt = np.arange(a, b + 1) * self._Ts
-                yy = y[a:b + 1]
-                A = np.column_stack([tt - tt.mean(), np.ones_like(tt)])
-                coef, *_ = np.linalg.lstsq(A, yy, rcond=None)
-                s2 = float(np.sum((yy - A @ coef) ** 2)) / max(1, len(tt) - 2)
-                row = [0.0, 0.0, float(np.mean(leak_rate[a:b])) * _LEAK_UNIT]
-                row[ch] = 1.0
-                rows.append(row)
-                rhs.append(coef[0])
-                var.append(s2 / float(np.sum((tt - tt.mean()) ** 2)))
-        D: list[float | None] = [None, None]
-        D_std = [np.nan, np.nan]
-        if not rows:
-            return D, D_std, None, np.nan
-        A = np.asarray(rows)
-        y = np.asarray(rhs)
-        wts = 1.0 / np.sqrt(np.asarray(var))
-        have = [bool(np.any(A[:, ch] > 0)) for ch in range(2)]
-        # the leak is separable only if the stretches see different seal flows
-        leak_ok = np.ptp(A[:, 2]) > 0.0 and len(rows) >= sum(have) + 1
-        cols = [ch for ch in range(2) if have[ch]] + ([2] if leak_ok else [])
-        Aw = A[:, cols] * wts[:, None]
-        sol, *_ = np.linalg.lstsq(Aw, y * wts, rcond=None)
-        if leak_ok and sol[-1] < 0.0:  # a leak cannot be negative: refit without it
-            cols = cols[:-1]
-            leak_ok = False
-            Aw = A[:, cols] * wts[:, None]
-            sol, *_ = np.linalg.lstsq(Aw, y * wts, rcond=None)
-        dof = max(1, len(y) - len(cols))
-        chi2 = float(np.sum((Aw @ sol - y * wts) ** 2)) / dof
-        cov = np.linalg.pinv(Aw.T @ Aw) * max(1.0, chi2)
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        for j, c in enumerate(cols):
-            if c < 2:
-                D[c] = float(sol[j])
-                D_std[c] = float(sd[j])
-        if leak_ok:
-            return D, D_std, float(sol[-1]) * _LEAK_UNIT, float(sd[-1]) * _LEAK_UNIT
-        return D, D_std, None, np.nan
+        """D_a, D_b [Pa/s], the leak conductance and standard errors, from shut valves
+        (:func:`~.valve_leak.closed_stretches`)."""
+        return closed_stretches(self._u, self._mask_samples, self._lookback, self.window_,
+                                self._Ts, self._nRT,
+                                ((self._Va, self._vol_a, self._pa_raw),
+                                 (self._Vb, self._vol_b, self._pb_raw)),
+                                self._flow(LEAK, 1.0, 0.0))
 
     @staticmethod
     def _fix(theta: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -596,7 +467,7 @@ class ValveIdentifier(Identifier):
                                f"PWM curve are only separable through the curve's shape"]
         self.notes_ = list(getattr(self, "notes_", []))
         self.max_duty_ = np.array([float(np.max(data.u[mask, i])) for i in range(4)])
-        self.full_open_s_ = np.array([_longest_run(mask & (data.u[:, i] >= 0.999)) * data.Ts
+        self.full_open_s_ = np.array([longest_run(mask & (data.u[:, i] >= 0.999)) * data.Ts
                                       for i in range(4)])
         self.knots_ = default_knots() if self.knots is None else np.asarray(self.knots, float)
         self._prepare(data, mask)
@@ -806,7 +677,7 @@ class ValveIdentifier(Identifier):
         """Switching behaviour of a valve (or equivalent to the mean curve).
 
         With the timing stage adopted (``timing_``), a valve's searched delays and minimum pulse.
-        Otherwise from the PWM curve (:func:`curve_switching`).
+        Otherwise from the PWM curve (:func:`~.valve_curves.curve_switching`).
         """
         self._require_fitted()
         if getattr(self, "timing_", None) is not None and valve is not None:
@@ -816,33 +687,3 @@ class ValveIdentifier(Identifier):
         return curve_switching(self.knots_, self.curve_ if valve is None
                                else self.curves_[valve], period)
 
-
-def curve_switching(knots: np.ndarray, curve: np.ndarray, period: float) -> dict[str, float]:
-    """Switching behaviour equivalent to a PWM curve (delays and minimum pulse [s]).
-
-    Only the minimum pulse (end of the dead zone) and the difference of the delays (the offset
-    of the curve above the diagonal) show in a curve; the opening delay is taken equal to the
-    minimum pulse (its smallest physical value).
-
-    Parameters
-    ----------
-    knots, curve : ndarray
-        Duties and effective open fractions.
-    period : float
-        PWM period [s].
-
-    Returns
-    -------
-    dict
-        ``min_pulse``, ``delay_on``, ``delay_off`` [s], ``offset`` and ``dead_zone`` [-].
-    """
-    k, r = knots, curve
-    dead = k[r <= 0.02]
-    d0 = float(dead.max()) if dead.size else 0.0
-    lin = (k > d0 + 0.05) & (r < 0.98) & (k < 0.95)
-    offset = float(np.median(r[lin] - k[lin])) if np.any(lin) else 0.0
-    min_pulse = d0 * period
-    delay_on = min_pulse
-    delay_off = max(0.0, delay_on + offset * period)
-    return {"min_pulse": min_pulse, "delay_on": delay_on, "delay_off": delay_off,
-            "offset": offset, "dead_zone": d0}

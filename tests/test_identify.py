@@ -163,9 +163,9 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
     is the estimate's widened by 0.15 b_v Ts."""
     from types import SimpleNamespace
 
-    from pneutune.identify import pipeline
+    from pneutune.identify import mass_choice
 
-    assert pipeline.mass_sampling_limit(3500.0, 0.004) == pytest.approx(4.456, abs=1e-3)
+    assert mass_choice.mass_sampling_limit(3500.0, 0.004) == pytest.approx(4.456, abs=1e-3)
 
     class Fake:
         def __init__(self, *a, **k):
@@ -175,13 +175,13 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
             self.M_, self.ci_ = 1.97, ci
             return self
 
-    monkeypatch.setattr(pipeline, "MassIdentifier", Fake)
+    monkeypatch.setattr(mass_choice, "MassIdentifier", Fake)
     data = SimpleNamespace(Ts=0.004, rig=PlantConfig().rig, mass_hint=None)
     friction = SimpleNamespace(b_v_=3500.0)
     margin = 0.15 * 3500.0 * 0.004  # the bias margin, 2.1 kg
     for ci, reported in (((1.84, 2.10), False), ((20.0, 22.0), True)):
         notes: list[str] = []
-        _, rng, _, _ = pipeline._mass(data, friction, None, None, 0.05, 0, notes)
+        _, rng, _, _ = mass_choice.choose_mass(data, friction, None, None, 0.05, 0, notes)
         widened = (ci[0] - margin, ci[1] + margin)
         assert (rng == pytest.approx(widened)) is reported, (ci, rng)
         assert any(n.startswith("mass: not identifiable") for n in notes) is not reported
@@ -280,9 +280,9 @@ def test_mass_within_6_percent(case):
 
 
 def test_longest_run_of_full_duty() -> None:
-    """identify/valves.py::_longest_run, which decides whether a log held a valve fully open long
+    """identify/valves.py::longest_run, which decides whether a log held a valve fully open long
     enough to pin its C and b (FULL_OPEN_PIN_S): counts consecutive True samples."""
-    from pneutune.identify.valves import _longest_run
+    from pneutune.identify.valves import longest_run as _longest_run
 
     assert _longest_run(np.array([], dtype=bool)) == 0
     assert _longest_run(np.array([False, False])) == 0

@@ -41,7 +41,7 @@ def test_compiled_residuals_are_the_numpy_expression(with_leak):
 def test_knot_window_sums_are_the_numpy_expression():
     """Per-knot window sums of sparse interpolation weights (zeros of both signs in the terms):
     the same floats as the cumulative sum along the samples."""
-    from pneutune.identify.valves import default_knots, interp_weights
+    from pneutune.identify.valve_curves import default_knots, interp_weights
 
     rng = np.random.default_rng(6)
     n = 2000
