@@ -8,8 +8,8 @@ Layout
     (about 10 bytes): ``indexed=False`` leaves the chunk and message indexes out, and viewers
     read the file linearly (Foxglove does so for any file without chunk indexes; the ``mcap``
     package's readers too). ``simulate --experiment`` writes its logs so (through
-    :meth:`Recording.save <pneutune.control.logs.recording.Recording.save>`): data/run.mcap
-    went from 32.6 MB to a third (docs/architecture.md, "Run logs"). Chunk indexes
+    :meth:`Recording.save <pneutune.control.logs.recording.Recording.save>`): without indexes
+    data/run.mcap is about half the size (docs/architecture.md, "Run logs"). Chunk indexes
     alone (no message indexes) would cost next to nothing but are not an option: ``@mcap/core``'s
     indexed reader, which Foxglove uses whenever a file has chunk indexes, refuses a chunk index
     without message indexes.
