@@ -193,6 +193,7 @@ def test_valve_delay_plus_line_delay_over_four_pwm_periods_names_the_valve() -> 
     message = str(info.value)
     assert "valves.a_out" in message and "lines.a.delay" in message
     assert "valves.a_in" not in message
+    assert info.value.key == "valves.a_out"  # the rule across blocks names its key, not ""
 
 
 # --- 3. valve armature lag ------------------------------------------------------------------

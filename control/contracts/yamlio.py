@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
@@ -175,6 +176,11 @@ def validation_error(file: str, exc: ValidationError, prefix: str = "") -> Confi
     if prefix:
         key = f"{prefix}.{key}" if key else prefix
     message = _describe(err)
+    if not key:  # a rule across blocks (a model validator) names its key first: "a.b: ..."
+        named = re.match(r"^([A-Za-z_][\w]*(?:\.[A-Za-z_][\w]*)+): (.+)$", message, re.S)
+        if named:
+            key = f"{prefix}.{named.group(1)}" if prefix else named.group(1)
+            message = named.group(2)
     if len(errs) > 1:
         message += f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})"
     return ConfigError(file, key, message)
