@@ -249,10 +249,28 @@ class DeployResult:
                             f"({self.config.variant}) on rig {self.rig}, seed {self.seed}")
 
 
-def _controller(controller: ControllerConfig | str | os.PathLike[str]
-                ) -> tuple[ControllerConfig, str, str]:
-    """The config, a name for messages and the log, and its sha256 (a file's over its bytes,
-    one in memory over its canonical JSON)."""
+def controller_source(controller: ControllerConfig | str | os.PathLike[str]
+                      ) -> tuple[ControllerConfig, str, str]:
+    """The config, a name for messages and the log, and its sha256.
+
+    Parameters
+    ----------
+    controller : ControllerConfig or path-like
+        controller.yaml (loaded strictly, contract 4) or a config in memory.
+
+    Returns
+    -------
+    (ControllerConfig, str, str)
+        The config; the file as given or ``<controller>``; the sha256 of the file's bytes, or
+        of a config in memory its canonical JSON.
+
+    Raises
+    ------
+    ConfigError
+        An invalid controller.yaml.
+    ExperimentError
+        Neither a path nor a ControllerConfig.
+    """
     if isinstance(controller, ControllerConfig):
         text = json.dumps(controller.to_dict(), sort_keys=True)
         return controller, "<controller>", hashlib.sha256(text.encode()).hexdigest()
@@ -313,7 +331,7 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
     RigIOError
         A driver that does not start for the first scenario (nothing ran).
     """
-    cfg, name, sha = _controller(controller)
+    cfg, name, sha = controller_source(controller)
     kind, rig_arg = parse_rig(rig)
     command, plant_path = (rig_arg, None) if kind == "exec" else (None, rig_arg)
     plant_cfg = load_plant(plant_path)
@@ -415,6 +433,16 @@ def _scenario_run(name: str, res: ScenarioResult, path: Path | None) -> Scenario
     return ScenarioRun(name, m, res, None if path is None else str(path))
 
 
-__all__ = ["EXIT_FAULT", "RIG_KINDS", "DeployResult", "ScenarioRun", "check_reference_in_limits",
-           "check_rig_compatible", "check_sampled_at_control_rate", "deploy", "parse_rig",
-           "scenario_log_path"]
+__all__ = [
+    "EXIT_FAULT",
+    "RIG_KINDS",
+    "DeployResult",
+    "ScenarioRun",
+    "check_reference_in_limits",
+    "check_rig_compatible",
+    "check_sampled_at_control_rate",
+    "controller_source",
+    "deploy",
+    "parse_rig",
+    "scenario_log_path",
+]

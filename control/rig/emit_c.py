@@ -44,8 +44,6 @@ The folder is written atomically where the file system allows: into a temporary 
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import math
 import os
 import re
@@ -58,14 +56,12 @@ from typing import Any
 import numpy as np
 
 from pneutune.control.constants import VERSION
-from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import (
     DEAD_ZONE_MODES,
     ORIGINAL_DARC_ACCEL,
     POSITION_FEEDBACK,
     VARIANTS,
     ControllerConfig,
-    load_controller,
 )
 from pneutune.control.errors import ConfigError, ExperimentError, argument_error
 from pneutune.control.law import c_header
@@ -81,6 +77,7 @@ from pneutune.control.law.layout import (
 )
 
 from . import supervisor_pack as sp
+from .deploy import controller_source
 from .supervisor import FAIL_SAFE_MODES
 
 #: The C sources a target compiles, copied from :data:`~pneutune.control.law.cbuild.SOURCE_DIR`.
@@ -169,19 +166,6 @@ class EmitResult:
 
 
 # -- checks ---------------------------------------------------------------------------------
-
-
-def _controller(controller: ControllerConfig | str | os.PathLike[str]
-                ) -> tuple[ControllerConfig, str, str]:
-    """The config, a name for messages, and the sha256 ``deploy`` logs for it (a file's over
-    its bytes, one in memory over its canonical JSON)."""
-    if isinstance(controller, ControllerConfig):
-        text = json.dumps(controller.to_dict(), sort_keys=True)
-        return controller, "<controller>", hashlib.sha256(text.encode()).hexdigest()
-    if not isinstance(controller, (str, os.PathLike)):
-        raise argument_error(ExperimentError, "controller", "must be a controller.yaml path or "
-                             f"a ControllerConfig, got {type(controller).__name__}")
-    return load_controller(controller), os.fspath(controller), sha256_file(controller)
 
 
 def _strip_comments(c_text: str) -> str:
@@ -574,7 +558,7 @@ def emit_c(controller: ControllerConfig | str | os.PathLike[str], out: str | os.
     if real not in REALS:
         raise argument_error(ExperimentError, "real", f"must be one of {', '.join(REALS)}, "
                              f"got {real!r}")
-    cfg, name, sha = _controller(controller)
+    cfg, name, sha = controller_source(controller)
     _check_layouts()
     law = pack(cfg)
     sup = sp.pack_supervisor(cfg)
