@@ -22,7 +22,7 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -211,7 +211,6 @@ class DeployResult:
     warnings: tuple[dict[str, Any], ...] = ()
     not_run: tuple[str, ...] = ()
     realtime: bool = False
-    _rows: tuple[Any, ...] = field(default=(), compare=False)
 
     @property
     def exit_status(self) -> int:
@@ -245,7 +244,8 @@ class DeployResult:
         """The paper's indices of every run beside Table 1's, as text."""
         from pneutune.control.sim.table import format_table
 
-        return format_table(list(self._rows), f"deploy {self.controller} "
+        rows = [(r.name, r.metrics, r.result.scenario.paper) for r in self.runs]
+        return format_table(rows, f"deploy {self.controller} "
                             f"({self.config.variant}) on rig {self.rig}, seed {self.seed}")
 
 
@@ -362,7 +362,6 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
     runs: list[ScenarioRun] = []
     faults: list[dict[str, Any]] = []
     warnings: list[dict[str, Any]] = []
-    rows = []
     disable = None if progress is None else not progress
     for sc in tqdm(resolved, desc="scenarios", unit="scenario", disable=disable, leave=False):
         the_rig: Rig
@@ -406,7 +405,6 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
             res.save_log(os.fspath(path), run=base_meta)
         run = _scenario_run(sc.name, res, path)
         runs.append(run)
-        rows.append((sc.name, run.metrics, sc.paper))
         warnings += [{"scenario": sc.name, **e.as_dict()} for e in res.loop.events
                      if e.level == "warning"]
         if res.fault is not None:
@@ -416,8 +414,7 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
             break
     ran = {r.name for r in runs}
     return DeployResult(name, cfg, rig, seed, tuple(runs), tuple(faults), tuple(warnings),
-                        tuple(sc.name for sc in resolved if sc.name not in ran), realtime,
-                        tuple(rows))
+                        tuple(sc.name for sc in resolved if sc.name not in ran), realtime)
 
 
 def _scenario_run(name: str, res: ScenarioResult, path: Path | None) -> ScenarioRun:
