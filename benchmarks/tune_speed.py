@@ -36,9 +36,21 @@ times (min..max, median, runs) and per seed the best objective of each pruner: `
 pruning every study used before ``--pruner`` (the baseline), ``wilcoxon`` the per-run
 signed-rank test against the best trial (docs/tuning.md, "Pruning").
 
-    .venv/bin/python benchmarks/tune_speed.py [--trials 200] [--workers 1] [--model M.yaml]
-        [--pwm latched] [--throughput-only] [--repeat 5] [--no-throughput]
-        [--pruners median,wilcoxon] [--seeds 1,2,3] [--rounds 1]
+Several models (``--model A.yaml,B.yaml``): each is measured in turn, and a last table gives
+per model the wall times (min..max) and the best objective of every pruner and seed.
+
+Against an older revision (``--baseline REV``): the same commands are also run by the code of
+``REV`` (a temporary ``git worktree``, put first on ``PYTHONPATH``; its compiled control law is
+the installed one when ``control/law/c`` did not change since, else it is built with the
+install's flags), alternating with the current code in every round, each warmed up once (numba
+compiles outside the timing). The table then gives both wall times and both best objectives per
+seed: a speed-up that keeps the objective's meaning finds the same best trial, or one no worse,
+on the same draws and seeds.
+
+    .venv/bin/python benchmarks/tune_speed.py [--trials 200] [--workers 1]
+        [--model M.yaml[,M2.yaml...]] [--pwm latched] [--throughput-only] [--repeat 5]
+        [--no-throughput] [--pruners median,wilcoxon] [--seeds 1,2,3] [--rounds 1]
+        [--baseline REV]
 """
 
 from __future__ import annotations
@@ -59,9 +71,13 @@ import numpy as np
 
 from pneutune.control.contracts.model import ModelConfig, load_model, save_model
 from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.law.clib import library_path
 from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune.objective import ObjectiveSettings, TuneObjective
 from pneutune.tune.space import controller_from_params
+
+#: The repository this benchmark belongs to (``--baseline`` makes its worktree from it).
+REPO = Path(__file__).resolve().parents[1]
 
 
 def throughput(model: ModelConfig, repeat: int) -> None:
@@ -101,8 +117,8 @@ def throughput(model: ModelConfig, repeat: int) -> None:
               f"({min(w):.2f} .. {max(w):.2f} s per evaluation)")
 
 
-def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int,
-             pruner: str) -> tuple[float, dict[str, Any]]:
+def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int, pruner: str,
+             env: dict[str, str] | None = None) -> tuple[float, dict[str, Any]]:
     """Run the ``tune`` command on a fresh study in ``out``.
 
     Parameters
@@ -115,6 +131,8 @@ def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int,
         ``--trials``, ``--workers``, ``--seed``.
     pruner : str
         ``--pruner``.
+    env : dict, optional
+        The command's environment (the baseline's ``PYTHONPATH``); default this process's.
 
     Returns
     -------
@@ -127,7 +145,7 @@ def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int,
     cmd = [exe, "--model", str(model), "--trials", str(trials), "--workers", str(workers),
            "--seed", str(seed), "--pruner", pruner, "--out", str(out), "--json"]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         sys.stderr.write(proc.stderr)
@@ -135,13 +153,61 @@ def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int,
     return wall, json.loads(proc.stdout)
 
 
+def baseline_env(rev: str, tmp: Path) -> dict[str, str]:
+    """An environment in which ``tune`` runs the code of revision ``rev`` (module docstring).
+
+    Parameters
+    ----------
+    rev : str
+        A git revision of this repository.
+    tmp : Path
+        Scratch folder: the worktree goes to ``tmp/baseline`` (remove it with
+        :func:`remove_baseline`).
+
+    Returns
+    -------
+    dict
+        This process's environment with the worktree's package first on ``PYTHONPATH``.
+    """
+    tree = tmp / "baseline"
+    subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(tree), rev],
+                   check=True)
+    shim = tmp / "baseline-path" / "pneutune"  # pneutune is a namespace package
+    shim.mkdir(parents=True)
+    for part in ("control", "identify", "tune"):
+        (shim / part).symlink_to(tree / part)
+    installed = library_path()
+    target = tree / "control" / "law" / installed.name
+    law_changed = subprocess.run(["git", "-C", str(REPO), "diff", "--quiet", rev, "--",
+                                  "control/law/c"]).returncode != 0
+    if law_changed:  # the flags of pyproject.toml's ext-modules entry
+        src = tree / "control" / "law" / "c"
+        subprocess.run(["gcc", "-shared", "-fPIC", "-std=c99", "-O2", "-ffp-contract=off",
+                        f"-I{src}", str(src / "ptlaw.c"), "-lm", "-o", str(target)], check=True)
+    else:
+        shutil.copy2(installed, target)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(shim.parent),
+                                                    env.get("PYTHONPATH")) if p)
+    return env
+
+
+def remove_baseline(tmp: Path) -> None:
+    """Remove the worktree :func:`baseline_env` made, if any."""
+    tree = tmp / "baseline"
+    if tree.exists():
+        subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
+                       check=False)
+
+
 def main() -> int:
     """Run the benchmark and print its figures."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--model", help="model.yaml, or 'truth' (default: reports/identify/model.yaml "
-                    "if it exists, else the truth model of the default plant)")
+    ap.add_argument("--model", help="model.yaml, several separated by commas, or 'truth' "
+                    "(default: reports/identify/model.yaml if it exists, else the truth model "
+                    "of the default plant)")
     ap.add_argument("--pwm", choices=("immediate", "latched"), default="immediate",
                     help="PWM update mode of the truth model (default immediate)")
     ap.add_argument("--repeat", type=int, default=5, help="throughput repeats (default 5)")
@@ -155,57 +221,83 @@ def main() -> int:
     ap.add_argument("--seeds", default="1", help="comma-separated seeds (default 1)")
     ap.add_argument("--rounds", type=int, default=1,
                     help="runs per pruner and seed, alternating the pruners (default 1)")
+    ap.add_argument("--baseline", metavar="REV",
+                    help="also run the commands with the code of this git revision, "
+                         "alternating with the current code")
     args = ap.parse_args()
     pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
     seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
     tmp = Path(tempfile.mkdtemp(prefix="pneutune-tune-bench-"))
     try:
         default = Path("reports/identify/model.yaml")
-        choice = args.model or (str(default) if default.is_file() else "truth")
-        model = tmp / "model.yaml" if choice == "truth" else Path(choice)
-        if choice == "truth":
-            plant = PlantConfig().with_updates({"rig": {"pwm_update": args.pwm}},
-                                               source=f"<pwm_update {args.pwm}>")
-            save_model(model_from_plant(plant), model)
+        choices = [c.strip() for c in (args.model or (str(default) if default.is_file()
+                                                      else "truth")).split(",") if c.strip()]
+        models: list[tuple[str, Path]] = []
+        for choice in choices:
+            if choice == "truth":
+                path = tmp / "truth-model.yaml"
+                plant = PlantConfig().with_updates({"rig": {"pwm_update": args.pwm}},
+                                                   source=f"<pwm_update {args.pwm}>")
+                save_model(model_from_plant(plant), path)
+                models.append((f"model_from_plant(PlantConfig(), {args.pwm})", path))
+            else:
+                models.append((choice, Path(choice)))
+        codes: dict[str, dict[str, str] | None] = {"current": None}
+        if args.baseline:
+            codes = {"current": None, args.baseline: baseline_env(args.baseline, tmp)}
         if not args.no_throughput:
-            throughput(load_model(model), args.repeat)
+            for name, path in models:
+                print(f"model {name}")
+                throughput(load_model(path), args.repeat)
         if args.throughput_only:
             return 0
-        name = f"model_from_plant(PlantConfig(), {args.pwm})" if choice == "truth" else choice
         print(f"tune --trials {args.trials} --workers {args.workers} (default settings), "
-              f"{os.cpu_count()} CPUs, model: {name}; pruners {', '.join(pruners)}, seeds "
-              f"{', '.join(map(str, seeds))}, {args.rounds} round(s)")
-        walls: dict[str, list[float]] = {p: [] for p in pruners}
-        best: dict[tuple[str, int], float] = {}
+              f"{os.cpu_count()} CPUs; pruners {', '.join(pruners)}, seeds "
+              f"{', '.join(map(str, seeds))}, {args.rounds} round(s); code: "
+              f"{', '.join(codes)}")
+        walls: dict[tuple[str, str, str], list[float]] = {}
+        best: dict[tuple[str, str, str, int], float] = {}
         k = 0
-        for rnd in range(args.rounds):
-            for seed in seeds:
-                order = pruners if k % 2 == 0 else pruners[::-1]  # alternate who goes first
-                k += 1
-                for pruner in order:
-                    out = tmp / f"out-{pruner}-{seed}-{rnd}"
-                    wall, res = run_tune(model, out, args.trials, args.workers, seed, pruner)
-                    shutil.rmtree(out, ignore_errors=True)
-                    tr = res["trials"]
-                    walls[pruner].append(wall)
-                    best[(pruner, seed)] = res["objective"]["tuned"]
-                    print(f"  round {rnd} seed {seed} {pruner:<9} wall {wall:6.1f} s "
-                          f"(optimisation {res['wall_s']:5.1f} s, "
-                          f"{tr['this_run'] / wall:5.2f} trials/s)  "
-                          f"{tr['complete']:3d} complete {tr['pruned']:3d} pruned "
-                          f"{tr['failed']} failed  best {res['objective']['tuned']:.4f} "
-                          f"(trial {res['best']['trial']}; paper's "
-                          f"{res['objective']['paper']:.4f})", flush=True)
-        print("wall time of the command (target: <= 45 s on the 2-core machine)")
-        for pruner, w in walls.items():
-            print(f"  {pruner:<9} {min(w):6.1f} .. {max(w):6.1f} s, median "
-                  f"{float(np.median(w)):6.1f} s ({len(w)} runs)")
-        print("best objective per seed (the same trials' value on the same plants in every "
-              "round: a seeded study is reproducible)")
-        print("  seed  " + "  ".join(f"{p:>9}" for p in pruners))
-        for seed in seeds:
-            print(f"  {seed:<5} " + "  ".join(f"{best[(p, seed)]:9.4f}" for p in pruners))
+        for name, path in models:
+            print(f"model {name}")
+            if len(codes) > 1:  # numba compiles each code's kernels once, outside the timing
+                for code, env in codes.items():
+                    run_tune(path, tmp / f"warm-{code}", 2, 1, 1, pruners[0], env)
+                    shutil.rmtree(tmp / f"warm-{code}", ignore_errors=True)
+            for rnd in range(args.rounds):
+                for seed in seeds:
+                    runs = [(code, pruner) for code in codes for pruner in pruners]
+                    order = runs if k % 2 == 0 else runs[::-1]  # alternate who goes first
+                    k += 1
+                    for code, pruner in order:
+                        out = tmp / f"out-{pruner}-{seed}-{rnd}"
+                        wall, res = run_tune(path, out, args.trials, args.workers, seed, pruner,
+                                             codes[code])
+                        shutil.rmtree(out, ignore_errors=True)
+                        tr = res["trials"]
+                        walls.setdefault((name, code, pruner), []).append(wall)
+                        best[(name, code, pruner, seed)] = res["objective"]["tuned"]
+                        print(f"  round {rnd} seed {seed} {code:<8} {pruner:<9} wall "
+                              f"{wall:6.1f} s (optimisation {res['wall_s']:5.1f} s, "
+                              f"{tr['this_run'] / wall:5.2f} trials/s)  "
+                              f"{tr['complete']:3d} complete {tr['pruned']:3d} pruned "
+                              f"{tr['failed']} failed  best {res['objective']['tuned']:.4f} "
+                              f"(trial {res['best']['trial']}; paper's "
+                              f"{res['objective']['paper']:.4f})", flush=True)
+        print("wall time of the command (target: <= 45 s on the 2-core machine), min .. max "
+              "(median, runs), and the best objective per seed (a seeded study is "
+              "reproducible: the same value in every round)")
+        print(f"  {'model':<48} {'code':<8} {'pruner':<9} {'wall [s]':<26} best per seed "
+              f"{', '.join(map(str, seeds))}")
+        for name, _ in models:
+            for code in codes:
+                for pruner in pruners:
+                    w = walls[(name, code, pruner)]
+                    b = ", ".join(f"{best[(name, code, pruner, seed)]:.4f}" for seed in seeds)
+                    span = f"{min(w):5.1f} .. {max(w):5.1f} ({float(np.median(w)):5.1f}, {len(w)})"
+                    print(f"  {name[-48:]:<48} {code:<8} {pruner:<9} {span:<26} {b}")
     finally:
+        remove_baseline(tmp)
         shutil.rmtree(tmp, ignore_errors=True)
     return 0
 

@@ -145,3 +145,40 @@ def test_a_stale_journal_write_lock_is_taken_over(tmp_path: Path) -> None:
     assert time.monotonic() - t0 < JOURNAL_LOCK_GRACE_S + 10.0
     assert len(study.trials) == 1
     assert not os.path.lexists(tmp_path / "study.journal.lock")
+
+
+def test_the_journal_is_fsynced_when_a_trial_ends(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """The records that only add to a running trial (its parameters, intermediate values,
+    attributes) are written at once but not fsync'ed; the one that ends it is, and Optuna's own
+    reader reads the file as its own backend would have written it."""
+    from optuna.storages.journal._storage import JournalOperation as Op
+
+    from pneutune.tune import study as study_mod
+
+    # the op codes are the journal file format's, spelt as numbers in study.py
+    assert {int(op) for op in (Op.CREATE_TRIAL, Op.SET_TRIAL_PARAM,
+                               Op.SET_TRIAL_INTERMEDIATE_VALUE, Op.SET_TRIAL_USER_ATTR,
+                               Op.SET_TRIAL_SYSTEM_ATTR)} == set(study_mod.RUNNING_TRIAL_OPS)
+    synced: list[int] = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(study_mod.os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    journal = tmp_path / "study.journal"
+    study = optuna.create_study(storage=open_storage(str(journal)), study_name="s")
+    at_start = len(synced)  # creating the study
+
+    def objective(trial: optuna.Trial) -> float:
+        x = sum(trial.suggest_float(f"x{i}", 0.0, 1.0) for i in range(5))
+        for step in range(3):
+            trial.report(x + step, step)
+        trial.set_user_attr("note", "n")
+        return x
+
+    study.optimize(objective, n_trials=3)
+    assert len(synced) - at_start == 3  # one per trial: 3 x 11 records written
+    plain = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
+    again = optuna.load_study(study_name="s", storage=plain)
+    assert [t.params for t in again.trials] == [t.params for t in study.trials]
+    assert [t.intermediate_values for t in again.trials] == [t.intermediate_values
+                                                             for t in study.trials]
+    assert [t.value for t in again.trials] == [t.value for t in study.trials]

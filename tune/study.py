@@ -2,9 +2,10 @@
 
 Storage (``--storage``):
 
-* default: a journal file ``DIR/study.journal`` (Optuna's ``JournalStorage`` with a
-  ``JournalFileBackend``). Every finished trial is an fsync'ed append, so ``kill -9`` loses at
-  most the trials that were running; ``optuna-dashboard DIR/study.journal`` opens it.
+* default: a journal file ``DIR/study.journal`` (Optuna's ``JournalStorage``; its records are
+  written by :class:`TrialEndSyncBackend`). Every finished trial is an fsync'ed append, so
+  ``kill -9`` loses at most the trials that were running; ``optuna-dashboard
+  DIR/study.journal`` opens it.
 * a path (any name not of the form ``scheme://``): a journal file at that path.
 * ``sqlite:///path.db``, ``postgresql://user@host:port/db`` (or ``postgresql+psycopg2://``),
   ``mysql+pymysql://...``: Optuna's RDB storage, with a heartbeat every 10 s so that the trials
@@ -51,6 +52,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import json
 import multiprocessing
 import os
 import time
@@ -200,6 +202,56 @@ def storage_scheme(storage: str) -> str:
     return scheme
 
 
+#: Journal records that only add to a running trial, by their ``op_code`` in the journal file
+#: format (Optuna's ``JournalOperation``: CREATE_TRIAL 4, SET_TRIAL_PARAM 5,
+#: SET_TRIAL_INTERMEDIATE_VALUE 7, SET_TRIAL_USER_ATTR 8, SET_TRIAL_SYSTEM_ATTR 9): written at
+#: once, but not fsync'ed (:class:`TrialEndSyncBackend`).
+RUNNING_TRIAL_OPS = frozenset({4, 5, 7, 8, 9})
+
+
+class TrialEndSyncBackend(optuna.storages.journal.BaseJournalBackend):
+    """Optuna's journal file, fsync'ed when a trial ends instead of after every record.
+
+    Reading is Optuna's :class:`~optuna.storages.journal.JournalFileBackend`; appending writes
+    the same JSON lines under the same lock, and flushes them to the operating system at once
+    (a killed process loses nothing written). Only a record that ends a trial (its state and
+    value) or changes the study is also fsync'ed, which puts every earlier record of the file on
+    the disk too: a machine that goes down loses at most the records of running trials, which a
+    resume discards anyway. A trial writes about twenty records (each parameter, each
+    intermediate value); fsyncing each took about 2 % of a ``tune --trials 200``.
+
+    Parameters
+    ----------
+    path : Path
+        The journal file.
+    lock : optuna.storages.journal.JournalFileSymlinkLock
+        The lock every writer of the file takes.
+    """
+
+    def __init__(self, path: Path, lock: Any) -> None:
+        self._path = str(path)
+        self._lock = lock
+        self._reader = optuna.storages.journal.JournalFileBackend(self._path, lock_obj=lock)
+
+    def read_logs(self, log_number_from: int) -> Any:
+        """The records from ``log_number_from`` on (Optuna's reader)."""
+        return self._reader.read_logs(log_number_from)
+
+    def append_logs(self, logs: list[dict[str, Any]]) -> None:
+        """Append ``logs`` as JSON lines; fsync unless they only add to running trials."""
+        text = "\n".join(json.dumps(log, separators=(",", ":")) for log in logs) + "\n"
+        sync = any(log.get("op_code") not in RUNNING_TRIAL_OPS for log in logs)
+        self._lock.acquire()
+        try:
+            with open(self._path, "ab") as f:
+                f.write(text.encode("utf-8"))
+                f.flush()
+                if sync:
+                    os.fsync(f.fileno())
+        finally:
+            self._lock.release()
+
+
 def open_storage(storage: str) -> optuna.storages.BaseStorage:
     """Open a storage (module docstring).
 
@@ -226,7 +278,7 @@ def open_storage(storage: str) -> optuna.storages.BaseStorage:
             # JOURNAL_LOCK_GRACE_S instead of Optuna's default 30 s
             lock = optuna.storages.journal.JournalFileSymlinkLock(
                 str(path), grace_period=JOURNAL_LOCK_GRACE_S)
-            backend = optuna.storages.journal.JournalFileBackend(str(path), lock_obj=lock)
+            backend = TrialEndSyncBackend(path, lock)
         except OSError as exc:
             raise StorageError(f"{storage}: cannot open the journal file ({exc})") from None
         return optuna.storages.JournalStorage(backend)

@@ -28,6 +28,22 @@ from pneutune.control.numba_cache import njit
 
 #: Slope of the arctan in S_f of Eq. (4) [s/m].
 SF_SLOPE: float = 1000.0
+#: exp(-q) is exactly 0.0 in double precision for q above 745.13; from here on
+#: :func:`exp_neg` returns that 0.0 without calling ``exp``, whose underflow path (errno,
+#: the error handler) costs several times a normal call. The Stribeck term underflows on
+#: every step of fast sliding on a law with small v_s.
+EXP_UNDERFLOW: float = 746.0
+#: Above this ``alpha log(|v|/v_s)`` the Stribeck term ``exp(-(|v|/v_s)^alpha)`` underflows to
+#: 0.0 (``exp(6.62)`` > :data:`EXP_UNDERFLOW`), so the power need not be computed.
+LOG_EXP_UNDERFLOW: float = 6.62
+
+
+@njit(cache=True, inline="always")
+def exp_neg(q: float) -> float:
+    """``exp(-q)``, bit for bit, without the slow underflow path of libm for large ``q``."""
+    if q > EXP_UNDERFLOW:
+        return 0.0
+    return math.exp(-q)
 
 
 @njit(cache=True)
@@ -38,11 +54,12 @@ def stribeck_level(av: float, F_S: float, F_C: float, v_s: float, alpha: float) 
     if av > 0.0:
         ratio = av / v_s
         if alpha == 2.0:
-            g = math.exp(-ratio * ratio)
+            g = exp_neg(ratio * ratio)
         elif alpha == 1.0:
-            g = math.exp(-ratio)
+            g = exp_neg(ratio)
         else:
-            g = math.exp(-math.exp(alpha * math.log(ratio)))
+            la = alpha * math.log(ratio)
+            g = 0.0 if la > LOG_EXP_UNDERFLOW else exp_neg(math.exp(la))
     else:
         g = 1.0
     return F_C + (F_S - F_C) * g
@@ -116,7 +133,7 @@ def stribeck_stiffness(u: float, F_S: float, F_C: float, v_s: float, alpha: floa
     """
     r = max(u / v_s, r_peak)
     ra = r * r if alpha == 2.0 else math.exp(alpha * math.log(r))
-    slope = (F_S - F_C) * alpha / v_s * (ra / r) * math.exp(-ra)
+    slope = (F_S - F_C) * alpha / v_s * (ra / r) * exp_neg(ra)
     return max(b_v, slope - b_v, 1.0e-9)
 
 

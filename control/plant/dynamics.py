@@ -167,7 +167,7 @@ def _next_force_step(force_steps: np.ndarray, t: float, t_end: float) -> float:
     return t_end
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def chamber_flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float,
                   p_s: float) -> tuple[float, float]:
     """Net mass flows into chambers A and B [kg/s] with the valves as they are in ``s``
@@ -334,7 +334,7 @@ def applied_force(p: np.ndarray, pa: float, pb: float, f_ext: float) -> float:
     return pa * p[P_AA] - pb * p[P_AB] - p[P_P0] * (p[P_AA] - p[P_AB]) + f_ext
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _deriv(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: float,
            stuck: bool, direction: float, p_s: float,
            f_ext: float) -> tuple[float, float, float, float]:

@@ -224,6 +224,79 @@ def valve_modes(duties: np.ndarray) -> np.ndarray:
     return np.where(mode1, 1, np.where(mode2, 2, 3))
 
 
+@njit(cache=True)
+def _sustained_mask(mask: np.ndarray, min_run: int) -> np.ndarray:
+    """:func:`sustained_runs` on a (n, k) bool array (compiled)."""
+    n, k = mask.shape
+    out = np.zeros(n, dtype=np.bool_)
+    need = max(min_run, 1)
+    for j in range(k):
+        start = -1
+        for i in range(n + 1):
+            on = i < n and mask[i, j]
+            if on and start < 0:
+                start = i
+            elif not on and start >= 0:
+                if i - start >= need:
+                    out[start:i] = True
+                start = -1
+    return out
+
+
+@njit(cache=True)
+def _window_counts(x: np.ndarray, duties: np.ndarray, theta: np.ndarray,
+                   theta_min: np.ndarray, theta_max: np.ndarray, duty_top: np.ndarray,
+                   x_min: float, x_max: float, window: int,
+                   min_run: int) -> tuple[int, bool, int, int, int]:
+    """The counting parts of :func:`compute_metrics` (exact integers, compiled).
+
+    Returns mode switches within the last ``window`` samples (:func:`valve_modes`), whether
+    every θ̂ sample is inside its bounds (with a relative tolerance of 1e-12), samples within
+    0.2 mm of a stroke end, and within the window the samples with some valve at full opening
+    (``duties >= duty_top - 1e-9``) and those inside a full opening of at least ``min_run``
+    samples (:func:`sustained_runs`). ``duty_top`` empty skips the last two (returned as 0).
+    """
+    n = x.shape[0]
+    first = n - window
+    switches = 0
+    prev = 0
+    for i in range(first, n):
+        d = duties[i]
+        mode = 1 if (d[0] > 0.0 or d[3] > 0.0) else (2 if (d[1] > 0.0 or d[2] > 0.0) else 3)
+        if i > first and mode != prev:
+            switches += 1
+        prev = mode
+    in_bounds = True
+    for j in range(theta.shape[1]):
+        tol = 1e-12 * max(1.0, abs(theta_max[j] - theta_min[j]))
+        lo = theta_min[j] - tol
+        hi = theta_max[j] + tol
+        for i in range(theta.shape[0]):
+            if not (theta[i, j] >= lo and theta[i, j] <= hi):
+                in_bounds = False
+    near = 0
+    for i in range(n):
+        if x[i] <= x_min + 2e-4 or x[i] >= x_max - 2e-4:
+            near += 1
+    full_count = 0
+    sustained = 0
+    if duty_top.shape[0] > 0:
+        k = duties.shape[1]
+        full = np.zeros((window, k), dtype=np.bool_)
+        for i in range(window):
+            for j in range(k):
+                top = duty_top[j] if duty_top.shape[0] == k else duty_top[0]
+                full[i, j] = duties[first + i, j] >= top - 1e-9
+            for j in range(k):
+                if full[i, j]:
+                    full_count += 1
+                    break
+        for flag in _sustained_mask(full, min_run):
+            if flag:
+                sustained += 1
+    return switches, in_bounds, near, full_count, sustained
+
+
 def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensors: np.ndarray,
                     duties: np.ndarray, control_state: np.ndarray, theta_min: np.ndarray,
                     theta_max: np.ndarray, x_min: float, x_max: float, status: str,
@@ -240,27 +313,28 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
     if n == 0:
         return Metrics(nan, nan, nan, nan, nan, nan, nan, False, nan, status)
     e1 = sensors[n - window:, 0] - reference[n - window:n, 0]
-    modes = valve_modes(duties[n - window:])
-    switches = float(np.count_nonzero(np.diff(modes))) / (window * Ts)
     theta = control_state[:, -6:]
-    tol = 1e-12 * np.maximum(1.0, np.abs(theta_max - theta_min))
-    in_bounds = bool(np.all((theta >= theta_min - tol) & (theta <= theta_max + tol)))
-    x = sensors[:, 0]
-    near = (x <= x_min + 2e-4) | (x >= x_max - 2e-4)
+    tops = (np.zeros(0) if duty_top is None
+            else np.atleast_1d(np.asarray(duty_top, dtype=np.float64)))
+    switch_count, in_bounds, near, full_count, sustained = _window_counts(
+        np.ascontiguousarray(sensors[:, 0]), np.ascontiguousarray(duties), theta,
+        np.atleast_1d(np.asarray(theta_min, dtype=np.float64)),
+        np.atleast_1d(np.asarray(theta_max, dtype=np.float64)), tops, float(x_min),
+        float(x_max), int(window), round(FULL_OPEN_SUSTAIN / Ts))
+    switches = float(switch_count) / (window * Ts)
     span = np.maximum(np.asarray(theta_max) - np.asarray(theta_min), 1e-300)
     drift = float(np.max(np.abs(theta[-1] - theta[n - window]) / span))
     full_open = flow_limited = nan
     if duty_top is not None:
-        full = duties[n - window:] >= duty_top - 1e-9
-        full_open = float(np.mean(np.any(full, axis=1)))
-        flow_limited = float(np.mean(sustained_runs(full, round(FULL_OPEN_SUSTAIN / Ts))))
+        full_open = full_count / window
+        flow_limited = sustained / window
     return Metrics(
         E_p_mm=float(np.max(np.abs(e1)) * 1e3),
         E_rms_mm=float(np.sqrt(np.mean(e1**2)) * 1e3),
         switches_per_s=switches,
         p_a_max_Pa=float(np.max(sensors[:, 1])), p_b_max_Pa=float(np.max(sensors[:, 2])),
         p_a_min_Pa=float(np.min(sensors[:, 1])), p_b_min_Pa=float(np.min(sensors[:, 2])),
-        theta_in_bounds=in_bounds, end_stop_s=float(np.count_nonzero(near) * Ts),
+        theta_in_bounds=bool(in_bounds), end_stop_s=float(near * Ts),
         status=status, theta_drift=drift, theta_settled=drift < THETA_SETTLED,
         full_open=full_open, flow_limited=flow_limited,
     )
@@ -284,15 +358,9 @@ def sustained_runs(mask: np.ndarray, min_run: int) -> np.ndarray:
     (n,) bool
     """
     m = np.asarray(mask, dtype=bool)
-    out = np.zeros(m.shape[0], dtype=bool)
-    for col in m.T:
-        edges = np.diff(np.concatenate(([0], col.astype(np.int8), [0])))
-        starts = np.flatnonzero(edges == 1)
-        ends = np.flatnonzero(edges == -1)
-        for a, b in zip(starts, ends, strict=True):
-            if b - a >= max(min_run, 1):
-                out[a:b] = True
-    return out
+    if m.ndim == 1:
+        m = m[:, None]
+    return _sustained_mask(np.ascontiguousarray(m), int(min_run))
 
 
 def scenario_plant(plant_cfg: PlantConfig, scenario: Scenario) -> PlantConfig:
