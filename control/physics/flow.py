@@ -55,9 +55,17 @@ def iso6358_flow(C: float, b: float, p_u: float, p_d: float, T_u: float) -> floa
     float
         Mass flow [kg/s], >= 0.
     """
+    return iso6358_flow_k(C, b, p_u, p_d, math.sqrt(T_REF / T_u))
+
+
+@njit(cache=True)
+def iso6358_flow_k(C: float, b: float, p_u: float, p_d: float, k_T: float) -> float:
+    """:func:`iso6358_flow` with its temperature factor ``k_T = sqrt(T_ref / T_u)`` given (a
+    caller with many flows at one temperature computes it once; the result is the same to the
+    last bit)."""
     if p_u <= 0.0 or p_d >= p_u:
         return 0.0
-    choked = C * RHO0 * p_u * math.sqrt(T_REF / T_u)
+    choked = C * RHO0 * p_u * k_T
     r = p_d / p_u
     if r <= b:
         return choked
@@ -76,9 +84,15 @@ def signed_flow(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
     Both ports are at gas temperature ``T`` [K] (the paper's isothermal-supply assumption,
     T_i = T0), so the upstream temperature is ``T`` whichever way the air flows.
     """
+    return signed_flow_k(C, b, p_1, p_2, math.sqrt(T_REF / T))
+
+
+@njit(cache=True)
+def signed_flow_k(C: float, b: float, p_1: float, p_2: float, k_T: float) -> float:
+    """:func:`signed_flow` with the temperature factor ``k_T = sqrt(T_ref / T)`` given."""
     if p_1 >= p_2:
-        return iso6358_flow(C, b, p_1, p_2, T)
-    return -iso6358_flow(C, b, p_2, p_1, T)
+        return iso6358_flow_k(C, b, p_1, p_2, k_T)
+    return -iso6358_flow_k(C, b, p_2, p_1, k_T)
 
 
 @njit(cache=True)

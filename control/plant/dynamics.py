@@ -55,9 +55,15 @@ import math
 
 import numpy as np
 
+from pneutune.control.constants import T_REF
 from pneutune.control.logs.topics import topic_fields
 from pneutune.control.numba_cache import njit
-from pneutune.control.physics.flow import iso6358_flow, signed_flow, signed_flow_t
+from pneutune.control.physics.flow import (
+    iso6358_flow,
+    signed_flow,
+    signed_flow_k,
+    signed_flow_t,
+)
 from pneutune.control.physics.friction import (
     stribeck_force,
     stribeck_level,
@@ -172,20 +178,20 @@ def chamber_flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float,
                   p_s: float) -> tuple[float, float]:
     """Net mass flows into chambers A and B [kg/s] with the valves as they are in ``s``
     (the paper's model: every valve fully open or closed, straight into its chamber)."""
-    T0 = p[P_T0]
+    k_T = math.sqrt(T_REF / p[P_T0])
     p0 = p[P_P0]
     ma = 0.0
     mb = 0.0
     if s[S_OPEN + 0] > 0.5:
-        ma += signed_flow(p[P_C + 0], p[P_B + 0], p_s, pa, T0)
+        ma += signed_flow_k(p[P_C + 0], p[P_B + 0], p_s, pa, k_T)
     if s[S_OPEN + 1] > 0.5:
-        ma -= signed_flow(p[P_C + 1], p[P_B + 1], pa, p0, T0)
+        ma -= signed_flow_k(p[P_C + 1], p[P_B + 1], pa, p0, k_T)
     if s[S_OPEN + 2] > 0.5:
-        mb += signed_flow(p[P_C + 2], p[P_B + 2], p_s, pb, T0)
+        mb += signed_flow_k(p[P_C + 2], p[P_B + 2], p_s, pb, k_T)
     if s[S_OPEN + 3] > 0.5:
-        mb -= signed_flow(p[P_C + 3], p[P_B + 3], pb, p0, T0)
+        mb -= signed_flow_k(p[P_C + 3], p[P_B + 3], pb, p0, k_T)
     if p[P_LEAKC] > 0.0:
-        leak = signed_flow(p[P_LEAKC], 0.0, pa, pb, T0)
+        leak = signed_flow_k(p[P_LEAKC], 0.0, pa, pb, k_T)
         ma -= leak
         mb += leak
     return ma, mb
