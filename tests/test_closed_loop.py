@@ -206,3 +206,51 @@ def test_flow_limited_counts_sustained_full_openings_only():
     chatter[~pair, 1] = chatter[~pair, 2] = True
     assert chatter.any(axis=1).all()
     assert not sustained_runs(chatter, 25).any()
+
+
+def test_compiled_metric_counts_equal_their_numpy_definitions() -> None:
+    """compute_metrics counts mode switches, θ̂ bound violations, samples near a stroke end,
+    full openings and sustained full openings in compiled code; each must equal its plain numpy
+    definition (the Metrics docstrings) on random signals that hit every case: θ̂ outside its
+    bounds and NaN, positions at both ends, duties at and below the top duty."""
+    from pneutune.control.sim.closed_loop import FULL_OPEN_SUSTAIN, compute_metrics
+    from pneutune.control.sim.scenarios import metric_window
+
+    sc = SCENARIOS["sine-0.5hz"]
+    Ts, n = 4e-3, 3000
+    rng = np.random.default_rng(11)
+    lo, hi = np.full(6, -1.0), np.full(6, 1.0)
+    top = np.array([0.9, 0.95, 0.9, 0.85])
+    for case in range(40):
+        ref = np.zeros((n, 3))
+        sensors = rng.normal(0.1, 0.05, (n, 4))
+        sensors[:, 0] = rng.choice([0.0, 1e-4, 0.1, 0.1999, 0.2], n, p=[.1, .1, .6, .1, .1])
+        duties = np.where(rng.random((n, 4)) < 0.3, rng.choice([0.0, 0.5, 0.9, 1.0], (n, 4)), 0.0)
+        duties[rng.integers(0, n - 60):][:60, case % 4] = 1.0   # one sustained full opening
+        state = np.zeros((n, 20))
+        state[:, -6:] = rng.uniform(-0.99, 0.99, (n, 6))
+        if case % 3 == 1:
+            state[rng.integers(n), -6 + case % 6] = 1.5
+        if case % 5 == 2:
+            state[rng.integers(n), -1] = np.nan
+        m = compute_metrics(sc, Ts, ref, sensors, duties, state, lo, hi, 0.0, 0.2, "ok",
+                            duty_top=top)
+        w = metric_window(sc.period, Ts)  # the last three periods
+        dw = duties[n - w:]
+        mode = np.where((dw[:, 0] > 0) | (dw[:, 3] > 0), 1,
+                        np.where((dw[:, 1] > 0) | (dw[:, 2] > 0), 2, 3))
+        assert m.switches_per_s == np.count_nonzero(np.diff(mode)) / (w * Ts)
+        th = state[:, -6:]
+        assert m.theta_in_bounds == bool(np.all((th >= lo - 1e-12) & (th <= hi + 1e-12)))
+        x = sensors[:, 0]
+        assert m.end_stop_s == np.count_nonzero((x <= 2e-4) | (x >= 0.2 - 2e-4)) * Ts
+        full = dw >= top - 1e-9
+        assert m.full_open == np.mean(full.any(axis=1))
+        runs = np.zeros(w, dtype=bool)
+        for j in range(4):
+            edges = np.diff(np.concatenate(([0], full[:, j].astype(int), [0])))
+            for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1),
+                            strict=True):
+                if b - a >= round(FULL_OPEN_SUSTAIN / Ts):
+                    runs[a:b] = True
+        assert m.flow_limited == np.mean(runs)

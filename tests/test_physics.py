@@ -912,3 +912,25 @@ def test_random_duty_sequences_keep_the_state_physical(blocks, x_frac, pb_frac, 
     assert X_MIN <= s[S_X] <= X_MAX
     p = np.concatenate([sensors[:, 1:3].ravel(), [s[S_PA], s[S_PB]]])
     assert (p > 0.0).all() and (p < 2.0 * PS).all()
+
+
+def test_exp_neg_is_exp_to_the_last_bit_across_its_underflow_shortcut() -> None:
+    """exp_neg(q) returns 0.0 without calling exp past EXP_UNDERFLOW (746): it must equal
+    math.exp(-q) everywhere, through the subnormal range (708-745) and past the point where
+    exp(-q) rounds to 0.0 (745.13); and stribeck_level, which also skips the power once its
+    logarithm passes LOG_EXP_UNDERFLOW, must equal Eq. (2) computed plainly."""
+    from pneutune.control.physics.friction import EXP_UNDERFLOW, exp_neg, stribeck_level
+
+    qs = np.concatenate([np.linspace(0.0, 800.0, 40001), np.linspace(744.0, 747.0, 3001),
+                         np.geomspace(1e-12, 1e12, 2001)])
+    assert all(exp_neg(q) == math.exp(-q) for q in qs)
+    assert math.exp(-EXP_UNDERFLOW) == 0.0
+    rng = np.random.default_rng(7)
+    for _ in range(20000):
+        av = 10.0 ** rng.uniform(-8.0, 1.0)
+        v_s = 10.0 ** rng.uniform(-4.0, -1.0)
+        alpha = float(rng.choice([1.0, 2.0, rng.uniform(0.3, 10.0)]))
+        r = av / v_s
+        g = (math.exp(-r * r) if alpha == 2.0 else math.exp(-r) if alpha == 1.0
+             else math.exp(-math.exp(alpha * math.log(r))))
+        assert stribeck_level(av, 120.0, 80.0, v_s, alpha) == 80.0 + 40.0 * g

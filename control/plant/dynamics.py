@@ -173,6 +173,8 @@ def _next_force_step(force_steps: np.ndarray, t: float, t_end: float) -> float:
     return t_end
 
 
+# chamber_flows and _deriv are inlined into _rk4 by numba: as calls, four times a step, they
+# cost a quarter of a run (docs/integration.md, "What a step costs")
 @njit(cache=True, inline="always")
 def chamber_flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float,
                   p_s: float) -> tuple[float, float]:
