@@ -153,6 +153,11 @@ def run_tune(model: Path, out: Path, trials: int, workers: int, seed: int, prune
     return wall, json.loads(proc.stdout)
 
 
+def _value(value: float | None) -> str:
+    """An objective value, or why there is none (a run of it failed on some draw)."""
+    return "failed" if value is None else f"{value:.4f}"
+
+
 def baseline_env(rev: str, tmp: Path) -> dict[str, str]:
     """An environment in which ``tune`` runs the code of revision ``rev`` (module docstring).
 
@@ -283,7 +288,7 @@ def main() -> int:
                               f"{tr['complete']:3d} complete {tr['pruned']:3d} pruned "
                               f"{tr['failed']} failed  best {res['objective']['tuned']:.4f} "
                               f"(trial {res['best']['trial']}; paper's "
-                              f"{res['objective']['paper']:.4f})", flush=True)
+                              f"{_value(res['objective']['paper'])})", flush=True)
         print("wall time of the command (target: <= 45 s on the 2-core machine), min .. max "
               "(median, runs), and the best objective per seed (a seeded study is "
               "reproducible: the same value in every round)")
