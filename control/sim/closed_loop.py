@@ -217,13 +217,6 @@ class ClosedLoopResult:
         return rec
 
 
-def valve_modes(duties: np.ndarray) -> np.ndarray:
-    """Mode per sample: 1 (a_in/b_out open), 2 (a_out/b_in open), 3 (all closed)."""
-    mode1 = (duties[:, 0] > 0.0) | (duties[:, 3] > 0.0)
-    mode2 = (duties[:, 1] > 0.0) | (duties[:, 2] > 0.0)
-    return np.where(mode1, 1, np.where(mode2, 2, 3))
-
-
 @njit(cache=True)
 def _sustained_mask(mask: np.ndarray, min_run: int) -> np.ndarray:
     """:func:`sustained_runs` on a (n, k) bool array (compiled)."""
@@ -250,11 +243,13 @@ def _window_counts(x: np.ndarray, duties: np.ndarray, theta: np.ndarray,
                    min_run: int) -> tuple[int, bool, int, int, int]:
     """The counting parts of :func:`compute_metrics` (exact integers, compiled).
 
-    Returns mode switches within the last ``window`` samples (:func:`valve_modes`), whether
-    every θ̂ sample is inside its bounds (with a relative tolerance of 1e-12), samples within
-    0.2 mm of a stroke end, and within the window the samples with some valve at full opening
-    (``duties >= duty_top - 1e-9``) and those inside a full opening of at least ``min_run``
-    samples (:func:`sustained_runs`). ``duty_top`` empty skips the last two (returned as 0).
+    Returns mode switches within the last ``window`` samples (the mode of a sample: 1 when
+    a_in or b_out is driven, else 2 when a_out or b_in is, else 3), whether every θ̂ sample is
+    inside its bounds (with a relative tolerance of 1e-12), samples within 0.2 mm of a stroke
+    end, and within the window the samples with some valve at full opening (``duties >=
+    duty_top - 1e-9``, one top duty per valve) and those inside a full opening of at least
+    ``min_run`` samples (:func:`sustained_runs`). ``duty_top`` empty skips the last two
+    (returned as 0).
     """
     n = x.shape[0]
     first = n - window
@@ -285,8 +280,7 @@ def _window_counts(x: np.ndarray, duties: np.ndarray, theta: np.ndarray,
         full = np.zeros((window, k), dtype=np.bool_)
         for i in range(window):
             for j in range(k):
-                top = duty_top[j] if duty_top.shape[0] == k else duty_top[0]
-                full[i, j] = duties[first + i, j] >= top - 1e-9
+                full[i, j] = duties[first + i, j] >= duty_top[j] - 1e-9
             for j in range(k):
                 if full[i, j]:
                     full_count += 1
@@ -314,8 +308,8 @@ def compute_metrics(scenario: Scenario, Ts: float, reference: np.ndarray, sensor
         return Metrics(nan, nan, nan, nan, nan, nan, nan, False, nan, status)
     e1 = sensors[n - window:, 0] - reference[n - window:n, 0]
     theta = control_state[:, -6:]
-    tops = (np.zeros(0) if duty_top is None
-            else np.atleast_1d(np.asarray(duty_top, dtype=np.float64)))
+    tops = (np.zeros(0) if duty_top is None else np.ascontiguousarray(
+        np.broadcast_to(np.asarray(duty_top, dtype=np.float64), (duties.shape[1],))))
     switch_count, in_bounds, near, full_count, sustained = _window_counts(
         np.ascontiguousarray(sensors[:, 0]), np.ascontiguousarray(duties), theta,
         np.atleast_1d(np.asarray(theta_min, dtype=np.float64)),
