@@ -40,9 +40,9 @@ Several models (``--model A.yaml,B.yaml``): each is measured in turn, and a last
 per model the wall times (min..max) and the best objective of every pruner and seed.
 
 Against an older revision (``--baseline REV``): the same commands are also run by the code of
-``REV`` (a temporary ``git worktree``, put first on ``PYTHONPATH``; its compiled control law is
-the installed one when ``control/law/c`` did not change since, else it is built with the
-install's flags), alternating with the current code in every round, each warmed up once (numba
+``REV`` (a temporary ``git worktree``, put first on ``PYTHONPATH``, with the installed compiled
+control law: ``REV``'s ``control/law/c`` must be the current one), alternating with the current
+code in every round, each warmed up once (numba
 compiles outside the timing). The table then gives both wall times and both best objectives per
 seed: a speed-up that keeps the objective's meaning finds the same best trial, or one no worse,
 on the same draws and seeds.
@@ -183,14 +183,11 @@ def baseline_env(rev: str, tmp: Path) -> dict[str, str]:
         (shim / part).symlink_to(tree / part)
     installed = library_path()
     target = tree / "control" / "law" / installed.name
-    law_changed = subprocess.run(["git", "-C", str(REPO), "diff", "--quiet", rev, "--",
-                                  "control/law/c"]).returncode != 0
-    if law_changed:  # the flags of pyproject.toml's ext-modules entry
-        src = tree / "control" / "law" / "c"
-        subprocess.run(["gcc", "-shared", "-fPIC", "-std=c99", "-O2", "-ffp-contract=off",
-                        f"-I{src}", str(src / "ptlaw.c"), "-lm", "-o", str(target)], check=True)
-    else:
-        shutil.copy2(installed, target)
+    if subprocess.run(["git", "-C", str(REPO), "diff", "--quiet", rev, "--",
+                       "control/law/c"]).returncode != 0:
+        raise SystemExit(f"error: --baseline {rev}: its control/law/c differs from the "
+                         "installed law's; compare revisions with the same C law")
+    shutil.copy2(installed, target)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(shim.parent),
                                                     env.get("PYTHONPATH")) if p)
