@@ -14,6 +14,15 @@ numba's is changed: its configuration, its locator list and every other package'
 as they were. With ``NUMBA_CACHE_DIR`` set, or a cache folder that cannot be written, the
 locator declines and numba's own locators decide.
 
+pneutune's ``njit`` also makes numpy's error model the default (``error_model="numpy"``): a
+float division by zero gives inf or nan, as IEEE 754 says, instead of raising
+ZeroDivisionError. numba's default (the Python model) tests every divisor before dividing; no
+pneutune function relies on the exception (the plant's contract keeps its divisors positive, and
+the closed loop turns a non-finite state into an "unstable" run), and every result is the same
+to the last bit without the tests (the plant's golden outputs, the law's reference replay and
+the sensor and duty arrays of full tune evaluations). A function may still ask for
+``error_model="python"``.
+
 The one function compiled otherwise is the ufunc form of the ISO 6358 flow
 (:func:`pneutune.control.physics.flow.signed_flow_array`, ``vectorize(cache=True)``): numba's own
 locator caches it beside its module, keyed on that module, which holds everything it calls.
@@ -100,7 +109,8 @@ def njit(*args: Any, cache: bool = False, **kwargs: Any) -> Any:
     Parameters
     ----------
     *args, **kwargs
-        As :func:`numba.njit` (a function, or the options; signatures are not used here).
+        As :func:`numba.njit` (a function, or the options; signatures are not used here);
+        ``error_model`` defaults to ``"numpy"`` (module docstring).
     cache : bool
         Cache the compiled code on disk (module docstring).
 
@@ -108,6 +118,8 @@ def njit(*args: Any, cache: bool = False, **kwargs: Any) -> Any:
     -------
     Dispatcher or decorator
     """
+    kwargs.setdefault("error_model", "numpy")
+
     def decorate(fn: Callable[..., Any]) -> Any:
         dispatcher = numba.njit(**kwargs)(fn)
         if cache:
