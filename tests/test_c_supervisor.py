@@ -1,12 +1,13 @@
 """The C supervisor and controller (control/law/c: pt_supervisor.c, pt_controller.c, the generated
-pt_sup_layout.h) against the Python supervisor and deploy runtime, back to back.
+pt_sup_layout.h) built as a target builds them, against the deploy runtime, back to back.
 
 The C is compiled once per module with the flags the port promises to build cleanly under
 (together with the law, ptlaw.c, and a small shim that reports the structs' layout), loaded with
 ctypes and fed the samples the Python gets:
 
 * the supervisor alone (``pt_sup_check_sensors``, ``pt_sup_check_estimates``) against
-  :class:`~pneutune.control.rig.supervisor.Supervisor` on sequences that trigger every fault and
+  :class:`~pneutune.control.rig.supervisor.Supervisor` (the same C as the install built it,
+  behind the runtime's packing and events) on sequences that trigger every fault and
   warning, at the thresholds' exact values and one ulp past them, on a clean closed loop and on
   random sequences: the same fault (and channel) and the same warnings at every sample;
 * the controller (``pt_controller_step``) against
@@ -322,7 +323,7 @@ class Samples:
 
 
 def _replay_py(settings: SupervisorSettings, seq: Samples) -> list[Outcome]:
-    """The Python supervisor on every sample: check_sensors, then check_estimates (also after a
+    """The runtime's supervisor on every sample: check_sensors, then check_estimates (also after a
     fault: the supervisor alone keeps judging)."""
     sup = Supervisor(settings)
     out = []

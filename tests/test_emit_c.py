@@ -10,7 +10,7 @@ ctypes:
   in the float build, exactly their rounding to float32), the fail-safe duties and the file's
   sha256;
 * the emitted controller, fed the readings of a deploy run on the simulated rig, writes the very
-  duties the deploy runtime (the installed law behind the Python supervisor) wrote, bit for bit;
+  duties the deploy runtime (the installed law behind the installed supervisor) wrote, bit for bit;
 * bad input is exit status 2 with one ``error:`` line: an invalid controller.yaml (the line
   ``deploy`` itself prints), an out folder holding other files, an unknown fail-safe, a setting
   the C does not handle, a value float cannot hold.

@@ -4,6 +4,7 @@ warnings; the pure rules on synthetic samples."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -256,6 +257,45 @@ def test_warnings_latch_once(sup):
     codes = [(e.code, round(e.t, 6)) for e in out]
     # M (θ1), b_v (θ3), A_f (θ4) each at their upper bound; F_n and the D's are not watched
     assert codes == [("reidentify_theta", 1.0)] * 3
+
+
+def test_messages_name_the_reading_and_the_time(sup):
+    """The events carry the channel, the reading and the times the decision was taken on:
+    the age of a stale channel (by its sample time, or since its value last changed) and how
+    long a warning's cause has held."""
+    ev = sup.check_sensors(0.5, [0.0235, 3e5, np.nan, 6e5])
+    assert ev.code == "sensor_nan" and ev.message == "sensor p_b reads nan at t=0.5000 s"
+    sup.reset()
+    ev = sup.check_sensors(0.1, GOOD, [0.1, 0.1, 0.1, 0.076])
+    assert ev.message.startswith("sensor p_s: no new sample for 0.0240 s at t=0.1000 s")
+    sup.reset()
+    faults = [sup.check_sensors(k * TS, GOOD) for k in range(7)]
+    assert faults[6].message.startswith("sensor p_a has read exactly 300000.0 Pa for 0.0240 s")
+    sup.reset()
+    warns = [w for k in range(200) for w in sup.check_estimates(k * TS, 3.9e5,
+                                                                np.full(6, 0.5))]
+    # 2.1 bar below the model's 6 bar from t = 0: given at the hold time, 0.5 s
+    assert [(w.code, round(w.t, 6)) for w in warns] == [("reidentify_supply", 0.5)]
+    assert "for 0.50 s" in warns[0].message
+
+
+def test_new_settings_apply_and_keep_memory(sup):
+    """Settings replaced during a run (an identification run relaxes a stroke limit near an
+    end stop) act from the next sample, and what the supervisor has seen is kept: a pressure
+    repeating since t = 0 is stale at the same sample as without the change."""
+    near = [0.0487, 3e5, 3e5, 6e5]
+    assert sup.check_sensors(0.0, near).code == "position_limit"
+    strict = sup.settings
+    sup.settings = dataclasses.replace(strict, x_max=0.050)
+    assert sup.check_sensors(0.0, near) is None
+    sup.settings = strict
+    sup.reset()
+    faults = []
+    for k in range(7):
+        if k == 3:
+            sup.settings = dataclasses.replace(strict, x_max=0.050)
+        faults.append(sup.check_sensors(k * TS, GOOD))
+    assert faults[:6] == [None] * 6 and faults[6].code == "sensor_stale"
 
 
 def test_settings_validation(paper):

@@ -1,10 +1,11 @@
 """The compiled control law: its shared library and the C functions numba calls.
 
 The control law exists once, as C99 in ``control/law/c/`` (``ptlaw.c``, the same sources
-``deploy --emit c`` gives a target). The install compiles it into a plain shared library,
-``pneutune/control/law/_ptlaw*.so`` (``[[tool.setuptools.ext-modules]]`` in pyproject.toml: not
-a Python extension module, never imported as one; ``pip install -e .`` or ``make`` rebuilds
-it after an edit of the C). This module loads it into the process's symbol table
+``deploy --emit c`` gives a target), and so does the deploy runtime's safety supervisor
+(``pt_supervisor.c``, called through :data:`LIB`). The install compiles both into a plain
+shared library, ``pneutune/control/law/_ptlaw*.so`` (``[[tool.setuptools.ext-modules]]`` in
+pyproject.toml: not a Python extension module, never imported as one; ``pip install -e .`` or
+``make`` rebuilds it after an edit of the C). This module loads it into the process's symbol table
 (:func:`llvmlite.binding.load_library_permanently`) and declares each C function as a numba
 :class:`~numba.core.types.ExternalFunction`: compiled code calls the function by its symbol, so
 numba's on-disk cache stays valid across processes (a ctypes function pointer would be an
@@ -102,5 +103,16 @@ pt_dither_into = types.ExternalFunction(
 _dp = ctypes.POINTER(ctypes.c_double)
 LIB.pt_init_state.argtypes = [_dp, _dp, ctypes.c_double, ctypes.c_double, ctypes.c_double]
 LIB.pt_init_state.restype = ctypes.c_int
+# the safety supervisor (pt_supervisor.h), called per sample by the deploy runtime
+# (pneutune.control.rig.supervisor.Supervisor); vectors pass as their data addresses
+_vp, _d, _u32 = ctypes.c_void_p, ctypes.c_double, ctypes.c_uint32
+LIB.pt_sup_reset.argtypes = [_vp]
+LIB.pt_sup_reset.restype = None
+LIB.pt_sup_layout_ok.argtypes = [_vp]
+LIB.pt_sup_layout_ok.restype = ctypes.c_int
+LIB.pt_sup_check_sensors.argtypes = [_vp, _vp, _d, _vp, _vp]
+LIB.pt_sup_check_sensors.restype = _u32
+LIB.pt_sup_check_estimates.argtypes = [_vp, _vp, _d, _d, _vp]
+LIB.pt_sup_check_estimates.restype = _u32
 
 __all__ = ["LIB", "MODULE", "PATH", "SOURCE_DIR", "LawLibraryError", "library_path"]

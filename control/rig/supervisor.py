@@ -3,8 +3,13 @@ a new identification.
 
 The supervisor looks at every sample *before* the control law does (a NaN fed to
 :func:`pneutune.control.law.darc.step_into` closes the valves but corrupts the Kalman and θ̂ states
-for good), and at θ̂ after the step. It is plain Python over floats (no allocation per sample
-beyond the returned events; about 2-4 µs per sample, see ``benchmarks/runtime_latency.py``), pure
+for good), and at θ̂ after the step. Its decisions are taken once, in C
+(``control/law/c/pt_supervisor.c``, compiled into the law's library): the deploy runtime calls
+that code through ctypes, and a target running the C law runs the same file around it. This
+module holds the rules (below), the thresholds (:class:`SupervisorSettings`) and the
+:class:`Event` messages; the C reads the thresholds packed by
+:mod:`pneutune.control.rig.supervisor_pack`. No allocation per sample beyond the returned
+events (about 3 µs per sample for both checks, see ``benchmarks/runtime_latency.py``); pure
 apart from its own memory (:meth:`Supervisor.reset`), and knows nothing of rigs or logs: the
 runtime (:mod:`pneutune.control.rig.runtime`) calls it and acts on what it returns.
 
@@ -71,7 +76,6 @@ protection against the pressure itself.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -249,6 +253,12 @@ def _fmt_p(p: float) -> str:
 class Supervisor:
     """Per-sample fault and warning checks (see the module docstring for the rules).
 
+    The decisions are the C supervisor's (``control/law/c/pt_supervisor.c``, the same code a
+    target runs around the C law; :data:`pneutune.control.law.clib.LIB`), on the settings packed
+    by :func:`pneutune.control.rig.supervisor_pack.pack_supervisor`: the thresholds computed in
+    float64 from ``settings`` once. This class turns its status words into :class:`Event` objects,
+    with the values and times the C holds in its state.
+
     Parameters
     ----------
     settings : SupervisorSettings
@@ -261,17 +271,45 @@ class Supervisor:
     """
 
     def __init__(self, settings: SupervisorSettings) -> None:
-        self.settings = settings
+        # imported here: supervisor_pack builds on this module's tables
+        from pneutune.control.law.clib import LIB
+        from pneutune.control.rig import supervisor_pack as sp
+
+        self._lib = LIB
+        self._sp = sp
+        self._settings = settings
+        self._vec = sp.pack_supervisor(settings)
+        self._state = np.zeros(sp.SUP_STATE_SIZE)
+        self._sensors = np.zeros(4)
+        self._stamps = np.zeros(4)
+        self._theta = np.zeros(6)
+        self._p_vec = self._vec.ctypes.data
+        self._p_state = self._state.ctypes.data
+        self._p_sensors = self._sensors.ctypes.data
+        self._p_stamps = self._stamps.ctypes.data
+        self._p_theta = self._theta.ctypes.data
         self.reset()
+
+    @property
+    def settings(self) -> SupervisorSettings:
+        """The thresholds. Setting new ones (a protocol relaxes a limit near an end stop)
+        repacks them for the C and keeps what the supervisor has seen."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, value: SupervisorSettings) -> None:
+        self._vec[:] = self._sp.pack_supervisor(value)
+        self._settings = value
 
     def reset(self) -> None:
         """Forget everything seen (start of a run)."""
-        self._last: list[float] = [math.nan] * 4
-        self._changed_at: list[float] = [0.0] * 4
-        self._supply_off_since: float | None = None
-        self._theta_since: dict[tuple[int, int], float] = {}
-        self._warned: set[tuple[str, int]] = set()
-        self._started = False
+        self._lib.pt_sup_reset(self._p_state)
+
+    def _status(self, status: int) -> int:
+        if status & self._sp.CONFIG_MASK:  # cannot happen: the vector is packed here
+            raise RuntimeError(f"the C supervisor rejected its settings: "
+                               f"{', '.join(self._sp.status_codes(status))}")
+        return status
 
     # -- faults ---------------------------------------------------------------------------------
 
@@ -294,77 +332,56 @@ class Supervisor:
         Event or None
             The fault (level ``error``), or None if the sample is fit for the controller.
         """
+        self._sensors[:] = sensors
+        stamps = None
+        if sample_times is not None:
+            self._stamps[:] = sample_times
+            stamps = self._p_stamps
+        t = float(t)
+        status = self._status(self._lib.pt_sup_check_sensors(
+            self._p_state, self._p_vec, t, self._p_sensors, stamps))
+        code = self._sp.first_fault(status)
+        if code is None:
+            return None
+        return Event(t, "error", code, self._fault_message(code, t, sample_times is not None))
+
+    def _fault_message(self, code: str, t: float, stamped: bool) -> str:
+        """What a fault found by the C says, with the readings and times it judged."""
         s = self.settings
-        raw = sensors.tolist() if isinstance(sensors, np.ndarray) else sensors
-        x, p_a, p_b, p_s = vals = (float(raw[0]), float(raw[1]), float(raw[2]), float(raw[3]))
-        if not math.isfinite(x + p_a + p_b + p_s):  # one test for the common case
-            for i, v in enumerate(vals):
-                if not math.isfinite(v):
-                    return Event(t, "error", "sensor_nan",
-                                 f"sensor {CHANNELS[i]} reads {v} at t={t:.4f} s")
-        x_lo, x_hi = s.x_min - s.x_span_margin, s.x_max + s.x_span_margin
-        if not x_lo <= x <= x_hi:
-            return Event(t, "error", "sensor_range",
-                         f"sensor x reads {x:.6g} m at t={t:.4f} s, outside the sensor span "
-                         f"[{x_lo:.6g}, {x_hi:.6g}] m")
-        p_lo, p_hi = s.p_sensor_range
-        for i in (1, 2, 3):
-            v = vals[i]
-            if not p_lo <= v <= p_hi:
-                return Event(t, "error", "sensor_range",
-                             f"sensor {CHANNELS[i]} reads {_fmt_p(v)} at t={t:.4f} s, outside "
-                             f"the sensor range [{p_lo:.6g}, {p_hi:.6g}] Pa")
-        stale = self._stale(t, vals, sample_times)
-        if stale is not None:
-            return stale
-        if not s.x_min - s.x_tolerance <= x <= s.x_max + s.x_tolerance:
+        sp = self._sp
+        vals = tuple(float(v) for v in self._sensors)
+        x, p_s = vals[0], vals[3]
+        i = int(self._state[sp.SUP_S_FAULT_CHANNEL])
+        if code == "sensor_nan":
+            return f"sensor {CHANNELS[i]} reads {vals[i]} at t={t:.4f} s"
+        if code == "sensor_range":
+            if i == 0:
+                x_lo, x_hi = s.x_min - s.x_span_margin, s.x_max + s.x_span_margin
+                return (f"sensor x reads {x:.6g} m at t={t:.4f} s, outside the sensor span "
+                        f"[{x_lo:.6g}, {x_hi:.6g}] m")
+            p_lo, p_hi = s.p_sensor_range
+            return (f"sensor {CHANNELS[i]} reads {_fmt_p(vals[i])} at t={t:.4f} s, outside "
+                    f"the sensor range [{p_lo:.6g}, {p_hi:.6g}] Pa")
+        if code == "sensor_stale":
+            timeout = s.sensor_timeout_s
+            if stamped:
+                age = t - float(self._stamps[i])
+                return (f"sensor {CHANNELS[i]}: no new sample for {age:.4f} s at t={t:.4f} s "
+                        f"(limits.sensor_timeout_s = {timeout:g} s)")
+            age = t - float(self._state[sp.SUP_S_CHANGED_AT + i])
+            return (f"sensor {CHANNELS[i]} has read exactly {vals[i]!r} Pa for {age:.4f} s at "
+                    f"t={t:.4f} s (limits.sensor_timeout_s = {timeout:g} s)")
+        if code == "position_limit":
             side = "below limits.x_min" if x < s.x_min else "above limits.x_max"
             bound = s.x_min if x < s.x_min else s.x_max
-            return Event(t, "error", "position_limit",
-                         f"position x = {x * 1e3:.4f} mm at t={t:.4f} s is {side} = "
-                         f"{bound * 1e3:.4f} mm (tolerance {s.x_tolerance * 1e3:.3g} mm)")
-        for i in (1, 2):
-            if vals[i] > s.p_max:
-                return Event(t, "error", "overpressure",
-                             f"{CHANNELS[i]} = {_fmt_p(vals[i])} at t={t:.4f} s is above "
-                             f"limits.p_max = {_fmt_p(s.p_max)}")
-        if p_s < s.supply_min:
-            return Event(t, "error", "supply_loss",
-                         f"supply pressure p_s = {_fmt_p(p_s)} at t={t:.4f} s is below "
-                         f"{_fmt_p(s.supply_min)} (p0 + {s.supply_loss_fraction:g} of the "
-                         f"model's gauge supply, rig.p_s = {_fmt_p(s.p_s_model)})")
-        return None
-
-    def _stale(self, t: float, vals: tuple[float, float, float, float],
-               sample_times: np.ndarray | Sequence[float] | None) -> Event | None:
-        s = self.settings
-        timeout = s.sensor_timeout_s
-        if sample_times is not None:
-            stamps = (sample_times.tolist() if isinstance(sample_times, np.ndarray)
-                      else sample_times)
-            if t - min(stamps) <= timeout + _TIME_EPS:  # the common case: all fresh
-                return None
-            for i in range(4):
-                age = t - float(stamps[i])
-                if age > timeout + _TIME_EPS:
-                    return Event(t, "error", "sensor_stale",
-                                 f"sensor {CHANNELS[i]}: no new sample for {age:.4f} s at "
-                                 f"t={t:.4f} s (limits.sensor_timeout_s = {timeout:g} s)")
-            return None
-        found: Event | None = None
-        for i in range(4):
-            if vals[i] != self._last[i] or not self._started:
-                self._last[i] = vals[i]
-                self._changed_at[i] = t
-            elif i > 0 and s.freeze_detection and found is None:
-                age = t - self._changed_at[i]
-                if age > timeout + _TIME_EPS:
-                    found = Event(t, "error", "sensor_stale",
-                                  f"sensor {CHANNELS[i]} has read exactly {vals[i]!r} Pa for "
-                                  f"{age:.4f} s at t={t:.4f} s (limits.sensor_timeout_s = "
-                                  f"{timeout:g} s)")
-        self._started = True
-        return found
+            return (f"position x = {x * 1e3:.4f} mm at t={t:.4f} s is {side} = "
+                    f"{bound * 1e3:.4f} mm (tolerance {s.x_tolerance * 1e3:.3g} mm)")
+        if code == "overpressure":
+            return (f"{CHANNELS[i]} = {_fmt_p(vals[i])} at t={t:.4f} s is above "
+                    f"limits.p_max = {_fmt_p(s.p_max)}")
+        return (f"supply pressure p_s = {_fmt_p(p_s)} at t={t:.4f} s is below "
+                f"{_fmt_p(s.supply_min)} (p0 + {s.supply_loss_fraction:g} of the "
+                f"model's gauge supply, rig.p_s = {_fmt_p(s.p_s_model)})")
 
     # -- warnings -------------------------------------------------------------------------------
 
@@ -386,42 +403,36 @@ class Supervisor:
         list of Event
             New warnings (usually empty).
         """
+        self._theta[:] = theta
+        t = float(t)
+        p_s = float(p_s)
+        status = self._status(self._lib.pt_sup_check_estimates(
+            self._p_state, self._p_vec, t, p_s, self._p_theta))
+        if not status & self._sp.WARN_MASK:
+            return []
         s = self.settings
+        sp = self._sp
         out: list[Event] = []
-        if abs(p_s - s.p_s_model) > s.supply_warn_delta:
-            if self._supply_off_since is None:
-                self._supply_off_since = t
-            held = t - self._supply_off_since
-            if held >= s.supply_warn_hold_s - _TIME_EPS and ("supply", 0) not in self._warned:
-                self._warned.add(("supply", 0))
-                out.append(Event(t, "warning", "reidentify_supply",
-                                 f"supply pressure p_s = {_fmt_p(p_s)} has differed from the "
-                                 f"model's rig.p_s = {_fmt_p(s.p_s_model)} by more than "
-                                 f"{s.supply_warn_delta / 1e5:g} bar for {held:.2f} s: "
-                                 f"run identify again (and tune) at this supply pressure"))
-        else:
-            self._supply_off_since = None
-        for i in WATCHED_THETA:
-            lo, hi = s.theta_min[i], s.theta_max[i]
-            band = s.theta_band * (hi - lo)
-            th = float(theta[i])
-            for side, near, bound in ((0, th <= lo + band, lo), (1, th >= hi - band, hi)):
-                key = (i, side)
-                if not near:
-                    self._theta_since.pop(key, None)
+        if status >> sp.STATUS_BITS["WARN_REIDENTIFY_SUPPLY"] & 1:
+            held = t - float(self._state[sp.SUP_S_SUPPLY_SINCE])
+            out.append(Event(t, "warning", "reidentify_supply",
+                             f"supply pressure p_s = {_fmt_p(p_s)} has differed from the "
+                             f"model's rig.p_s = {_fmt_p(s.p_s_model)} by more than "
+                             f"{s.supply_warn_delta / 1e5:g} bar for {held:.2f} s: "
+                             f"run identify again (and tune) at this supply pressure"))
+        for j, i in enumerate(WATCHED_THETA):
+            for side in (0, 1):
+                if not status >> (sp.THETA_BIT0 + 2 * j + side) & 1:
                     continue
-                since = self._theta_since.setdefault(key, t)
-                held = t - since
-                tag = ("theta", 2 * i + side)
-                if held >= s.theta_hold_s - _TIME_EPS and tag not in self._warned:
-                    self._warned.add(tag)
-                    name = THETA_NAMES[i]
-                    out.append(Event(t, "warning", "reidentify_theta",
-                                     f"θ̂ {name} = {th:.6g} {THETA_UNITS[i]} has stayed within "
-                                     f"{s.theta_band * 100:g} % of its "
-                                     f"{'lower' if side == 0 else 'upper'} bound {bound:g} "
-                                     f"{THETA_UNITS[i]} for {held:.2f} s: the model's range no "
-                                     f"longer holds the plant; run identify again"))
+                held = t - float(self._state[sp.SUP_S_THETA_SINCE + 2 * j + side])
+                bound = s.theta_min[i] if side == 0 else s.theta_max[i]
+                out.append(Event(t, "warning", "reidentify_theta",
+                                 f"θ̂ {THETA_NAMES[i]} = {float(self._theta[i]):.6g} "
+                                 f"{THETA_UNITS[i]} has stayed within "
+                                 f"{s.theta_band * 100:g} % of its "
+                                 f"{'lower' if side == 0 else 'upper'} bound {bound:g} "
+                                 f"{THETA_UNITS[i]} for {held:.2f} s: the model's range no "
+                                 f"longer holds the plant; run identify again"))
         return out
 
 

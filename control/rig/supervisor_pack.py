@@ -15,10 +15,11 @@ the supervisor checks them in). :func:`sup_layout_header` generates the C header
 ``python -m pneutune.control.rig.supervisor_pack`` rewrites the committed
 ``control/law/c/pt_sup_layout.h``, and ``--check`` exits 1 when it differs.
 
-The settings vector holds the thresholds as the Python supervisor compares with them, computed
-here once in float64 with its very operations (``x_min - x_span_margin``, ``timeout + 1 ns``,
-``theta_min + theta_band (theta_max - theta_min)``, ...), so that the C, comparing the same
-doubles, takes the same decisions.
+The settings vector holds the thresholds as the module docstring of
+:mod:`~pneutune.control.rig.supervisor` states them, computed here once in float64
+(``x_min - x_span_margin``, ``timeout + 1 ns``, ``theta_min + theta_band (theta_max -
+theta_min)``, ...): the deploy runtime's :class:`~pneutune.control.rig.supervisor.Supervisor`
+and a target hand the C the same doubles, so they take the same decisions.
 
 Status word (``uint32_t``)
     bits 0-6: the faults of :data:`~pneutune.control.rig.supervisor.FAULT_CODES` in their order

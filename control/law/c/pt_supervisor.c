@@ -1,8 +1,8 @@
 /* pt_supervisor.c: the safety supervisor in C99 (API and conventions: pt_supervisor.h).
  *
- * Each function mirrors a method of control/rig/supervisor.py (Supervisor), named in its
- * comment, test by test and in the same order; the Python's None and dict/set memory become
- * 0/1 flags in the state vector.
+ * The rules are those control/rig/supervisor.py states (its module docstring), checked in that
+ * order; each function is what a method of its Supervisor class calls, named in its comment.
+ * The memory is the state vector: 0/1 flags and the times they were set.
  */
 #include <math.h>
 #include <stddef.h>
@@ -49,7 +49,7 @@ static int stale_channel(pt_real *state, const pt_real *sup, pt_real t, const pt
     int started = state[PT_SUP_S_STARTED] != PT_C(0.0);
     pt_real limit = sup[PT_SUP_STALE_AGE];
     if (sample_times != NULL) {
-        /* the Python's shortcut on min(sample_times) finds what this loop finds */
+        /* the first channel older than the limit, in channel order */
         for (i = 0; i < 4; ++i) {
             if (t - sample_times[i] > limit) {
                 return i;

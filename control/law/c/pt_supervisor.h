@@ -1,10 +1,8 @@
-/* pt_supervisor.h: the safety supervisor of pneutune's deploy runtime
- * (control/rig/supervisor.py, class Supervisor) as portable C99, for targets that run the
- * control law (ptlaw.h) from a timer interrupt.
- *
- * It takes the decisions of the Python Supervisor on the same samples: the same first fault at
- * the same sample, the same warnings at the same samples. Flat vectors, indices in
- * pt_sup_layout.h (generated from control/rig/supervisor_pack.py):
+/* pt_supervisor.h: the safety supervisor of pneutune's deploy runtime as portable C99: the
+ * runtime calls it through ctypes (control/rig/supervisor.py, class Supervisor, which holds the
+ * rules' description and formats the events), and targets that run the control law (ptlaw.h)
+ * from a timer interrupt call it around the law. Flat vectors, indices in pt_sup_layout.h
+ * (generated from control/rig/supervisor_pack.py):
  *
  *   sup[PT_SUP_SIZE]          settings (supervisor_pack.pack_supervisor), read only: the
  *                             thresholds precomputed in double exactly as the Python compares
@@ -41,9 +39,9 @@
  * A settings vector of another layout (sup[PT_SUP_LAYOUT] != PT_SUP_LAYOUT_ID) makes both checks
  * return PT_STATUS_BAD_LAYOUT and touch nothing.
  *
- * Equality with Python: the comparisons are the Python's, against the same doubles; times are
- * compared as in Python (the 1 ns margin is inside the packed thresholds). With pt_real double
- * (and without -ffast-math, which would drop the NaN checks) the decisions are Python's bit for
+ * A target and the deploy runtime take the same decisions: both hand this code the same
+ * doubles (the 1 ns margin of the time comparisons is inside the packed thresholds). With
+ * pt_real double (and without -ffast-math, which would drop the NaN checks) they agree bit for
  * bit. With PT_REAL_FLOAT the thresholds are rounded to float once: decisions on values within
  * a float ulp of a threshold may differ, and times lose resolution on long runs (t as float
  * resolves 1 ms only up to about 2.3 h; keep t running from a recent origin, as the supervisor
