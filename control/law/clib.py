@@ -106,6 +106,9 @@ LIB.pt_init_state.restype = ctypes.c_int
 # the safety supervisor (pt_supervisor.h), called per sample by the deploy runtime
 # (pneutune.control.rig.supervisor.Supervisor); vectors pass as their data addresses
 _vp, _d, _u32 = ctypes.c_void_p, ctypes.c_double, ctypes.c_uint32
+if not hasattr(LIB, "pt_sup_check_sensors"):
+    raise LawLibraryError(f"{PATH} was built without the safety supervisor (pt_supervisor.c): "
+                          "rebuild it with `pip install -e .` (or `make test`)")
 LIB.pt_sup_reset.argtypes = [_vp]
 LIB.pt_sup_reset.restype = None
 LIB.pt_sup_layout_ok.argtypes = [_vp]
