@@ -2,7 +2,7 @@
 a study keeping its pruner on resume.
 
 Expected values come from the definitions in ``tune/objective.py`` (instance ids, the chunks of
-draws, the objective: the mean over scenarios of the CVaR over draws) and ``tune/study.py`` (the
+draws, the objective: the mean over scenarios of the CVaR over draws) and ``tune/pruners.py`` (the
 pruner stored with a study). Values computed twice from the same bit-identical runs are compared
 with a relative tolerance of 1e-12 (the same floating-point operations in the same order; the
 tolerance only allows for nothing more than rounding).
@@ -31,7 +31,7 @@ from pneutune.tune.objective import (
     TuneObjective,
     estimate_from_best,
 )
-from pneutune.tune.study import DEFAULT_PRUNER, PRUNERS, make_pruner, study_pruner
+from pneutune.tune.pruners import DEFAULT_PRUNER, PRUNERS, make_pruner, study_pruner
 
 MODEL = model_from_plant(PlantConfig())
 #: Two short scenarios on eight plants: 16 runs in four chunks of INSTANCE_CHUNK draws.

@@ -24,7 +24,7 @@ from tune_helpers import (
     write_truth_model,
 )
 
-from pneutune.tune.study import JOURNAL_LOCK_GRACE_S, open_storage, repair_journal
+from pneutune.tune.storage import JOURNAL_LOCK_GRACE_S, open_storage, repair_journal
 
 FINISHED = ("COMPLETE", "PRUNED")
 
@@ -154,15 +154,15 @@ def test_the_journal_is_fsynced_when_a_trial_ends(tmp_path: Path,
     reader reads the file as its own backend would have written it."""
     from optuna.storages.journal._storage import JournalOperation as Op
 
-    from pneutune.tune import study as study_mod
+    from pneutune.tune import storage as storage_mod
 
-    # the op codes are the journal file format's, spelt as numbers in study.py
+    # the op codes are the journal file format's, spelt as numbers in storage.py
     assert {int(op) for op in (Op.CREATE_TRIAL, Op.SET_TRIAL_PARAM,
                                Op.SET_TRIAL_INTERMEDIATE_VALUE, Op.SET_TRIAL_USER_ATTR,
-                               Op.SET_TRIAL_SYSTEM_ATTR)} == set(study_mod.RUNNING_TRIAL_OPS)
+                               Op.SET_TRIAL_SYSTEM_ATTR)} == set(storage_mod.RUNNING_TRIAL_OPS)
     synced: list[int] = []
     real_fsync = os.fsync
-    monkeypatch.setattr(study_mod.os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    monkeypatch.setattr(storage_mod.os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
     journal = tmp_path / "study.journal"
     study = optuna.create_study(storage=open_storage(str(journal)), study_name="s")
     at_start = len(synced)  # creating the study

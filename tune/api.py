@@ -49,20 +49,12 @@ from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
 from .logcheck import check_logs, logged_controller
 from .objective import ObjectiveSettings, TuneError, TuneObjective
+from .pruners import check_pruner
 from .report import Comparison, compare, write_report
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
 from .space import THETA_0_PARAM, controller_from_params, search_space
-from .study import (
-    DEFAULT_JOURNAL,
-    RunSummary,
-    StudySpec,
-    check_pruner,
-    default_study_name,
-    finished,
-    redact_url,
-    run_study,
-    storage_scheme,
-)
+from .storage import DEFAULT_JOURNAL, redact_url, storage_scheme
+from .study import RunSummary, StudySpec, default_study_name, finished, run_study
 
 #: Where ``tune`` writes by default.
 DEFAULT_OUT = "reports/tune"
@@ -98,7 +90,7 @@ class TuneSettings:
         ``tpe`` (default) or ``cmaes`` (TPE, then CMA-ES warm-started from it; needs the
         ``cmaes`` package); :mod:`pneutune.tune.samplers`.
     pruner : str or None
-        ``wilcoxon``, ``median`` or ``none`` (:func:`pneutune.tune.study.make_pruner`); None
+        ``wilcoxon``, ``median`` or ``none`` (:func:`pneutune.tune.pruners.make_pruner`); None
         (default): a resumed study's own, ``median`` for a new one.
     """
 

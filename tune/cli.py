@@ -18,9 +18,10 @@ from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
 
 from .api import DEFAULT_OUT, TuneSettings, tune
 from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError
+from .pruners import PRUNERS
 from .samplers import CMAES_WARM_START, DEFAULT_SAMPLER, SAMPLERS
 from .space import VARIANTS
-from .study import DEFAULT_JOURNAL, PRUNERS
+from .storage import DEFAULT_JOURNAL
 
 DEFAULT_MODEL = "reports/identify/model.yaml"
 

@@ -1,15 +1,6 @@
 """The Optuna study: storage, resume, several worker processes, several hosts.
 
-Storage (``--storage``):
-
-* default: a journal file ``DIR/study.journal`` (Optuna's ``JournalStorage``; its records are
-  written by :class:`TrialEndSyncBackend`). Every finished trial is an fsync'ed append, so
-  ``kill -9`` loses at most the trials that were running; ``optuna-dashboard
-  DIR/study.journal`` opens it.
-* a path (any name not of the form ``scheme://``): a journal file at that path.
-* ``sqlite:///path.db``, ``postgresql://user@host:port/db`` (or ``postgresql+psycopg2://``),
-  ``mysql+pymysql://...``: Optuna's RDB storage, with a heartbeat every 10 s so that the trials
-  of a killed worker are failed after 30 s (``optuna.storages.fail_stale_trials``).
+Storage (``--storage``): :mod:`pneutune.tune.storage`.
 
 Resume: re-running the same command opens the same study (default name
 ``tune-<model sha256[:12]>-seed<S>``) and runs only the remainder: ``--trials N`` is the number
@@ -38,28 +29,18 @@ dies, so ``kill -9`` of ``tune`` stops the whole run.
 The first trial of a new study is the paper's Sec. 5.1 values (clipped to the ranges), so the
 study always holds the baseline.
 
-Pruning (``--pruner``, :func:`make_pruner`): ``median`` (the default): ``MedianPruner`` on
-the running mean after each scenario (also every study made before the option); ``wilcoxon``:
-Optuna's ``WilcoxonPruner`` on per-run reports (each (scenario, draw) run's cost at its instance
-id, :class:`~pneutune.tune.objective.TuneObjective` with ``instance_reports``), which stops a
-trial once a signed-rank test over the runs done so far finds it worse than the best trial on
-the same runs; ``none``. A study keeps its pruner (stored with it when not ``median``); without
-``--pruner`` a resumed study uses its own.
+Pruning (``--pruner``): :mod:`pneutune.tune.pruners`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import fcntl
-import json
 import multiprocessing
 import os
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -69,40 +50,23 @@ from optuna.trial import TrialState
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.errors import PneutuneError, argument_error
 
-from .objective import ObjectiveSettings, TuneError, TuneObjective
-from .samplers import DEFAULT_SAMPLER, N_STARTUP_TRIALS, check_sampler, make_sampler
+from .objective import ObjectiveSettings, TuneObjective
+from .pruners import LEGACY_PRUNER, check_pruner, make_pruner, study_pruner
+from .samplers import DEFAULT_SAMPLER, check_sampler, make_sampler
 from .space import search_space
+from .storage import (
+    StorageError,
+    is_url,
+    local_file,
+    local_lock,
+    open_storage,
+    redact_url,
+    repair_journal,
+)
 
 #: Study user attribute holding what the study was created with.
 META_KEY = "pneutune"
 STUDY_SCHEMA = "pneutune.tune-study/1"
-#: Default journal file name in the output folder.
-DEFAULT_JOURNAL = "study.journal"
-#: A journal write lock unchanged for this long is a killed writer's and is taken over [s].
-JOURNAL_LOCK_GRACE_S = 3
-#: Heartbeat of RDB storages [s] and the silence after which a running trial is failed [s].
-HEARTBEAT_INTERVAL = 10
-GRACE_PERIOD = 30
-#: MedianPruner start-up trials (TPE's are :data:`pneutune.tune.samplers.N_STARTUP_TRIALS`). (A
-#: PercentilePruner keeping the best third was measured too: 30 % faster, but a worse best trial
-#: on 3 of 3 studies.)
-PRUNER_STARTUP_TRIALS = 10
-#: Pruners of ``--pruner``.
-PRUNERS: tuple[str, ...] = ("wilcoxon", "median", "none")
-#: The pruner of a new study when none is asked for (``wilcoxon`` is about twice as fast but
-#: found a worse best trial on some seeds: docs/tuning.md, "Pruning").
-DEFAULT_PRUNER = "median"
-#: The pruner of a study whose metadata names none (made before the option).
-LEGACY_PRUNER = "median"
-#: WilcoxonPruner: p-value below which a trial is stopped as worse than the best one, and the
-#: paired runs needed before any test (one chunk of draws).
-WILCOXON_P_THRESHOLD = 0.1
-WILCOXON_STARTUP_STEPS = 4
-_RDB_SCHEMES = ("sqlite", "postgresql", "postgres", "mysql", "mariadb", "oracle", "mssql")
-
-
-class StorageError(PneutuneError, ValueError):
-    """The storage URL or file cannot be used."""
 
 
 class StudyMismatchError(PneutuneError, ValueError):
@@ -111,49 +75,6 @@ class StudyMismatchError(PneutuneError, ValueError):
 
 class WorkerError(RuntimeError):
     """A worker process failed (its traceback is on stderr): an internal failure, exit 1."""
-
-
-def check_pruner(name: str | None) -> None:
-    """Raise :class:`~pneutune.tune.objective.TuneError` unless ``name`` is None or one of
-    :data:`PRUNERS`."""
-    if name is not None and name not in PRUNERS:
-        raise argument_error(TuneError, "pruner",
-                             f"must be one of {', '.join(PRUNERS)}, got {name!r}")
-
-
-def make_pruner(name: str) -> optuna.pruners.BasePruner:
-    """The Optuna pruner of ``--pruner`` (module docstring).
-
-    Parameters
-    ----------
-    name : str
-        One of :data:`PRUNERS`.
-
-    Returns
-    -------
-    optuna.pruners.BasePruner
-    """
-    check_pruner(name)
-    if name == "wilcoxon":
-        with warnings.catch_warnings():  # experimental in Optuna 3.6-5.x
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return optuna.pruners.WilcoxonPruner(p_threshold=WILCOXON_P_THRESHOLD,
-                                                 n_startup_steps=WILCOXON_STARTUP_STEPS)
-    if name == "median":
-        return optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
-                                           n_warmup_steps=0, interval_steps=1)
-    return optuna.pruners.NopPruner()
-
-
-def study_pruner(meta: dict[str, Any] | None, asked: str | None) -> str:
-    """The pruner a study runs with: ``asked``, else the one stored in its metadata ``meta``
-    (:data:`LEGACY_PRUNER` when it names none), else, for a new study (``meta`` None),
-    :data:`DEFAULT_PRUNER`."""
-    if asked is not None:
-        return asked
-    if meta is None:
-        return DEFAULT_PRUNER
-    return str(meta.get("pruner", LEGACY_PRUNER))
 
 
 def default_study_name(model_sha256: str, seed: int, variant: str = "modified_darc",
@@ -167,211 +88,6 @@ def default_study_name(model_sha256: str, seed: int, variant: str = "modified_da
     if dead_zone != "up":
         suffix += f"-{dead_zone}"
     return f"tune-{model_sha256[:12]}-seed{seed}{suffix}"
-
-
-def is_url(storage: str) -> bool:
-    """Whether ``storage`` is a ``scheme://`` URL (otherwise it is a journal file path)."""
-    return "://" in storage
-
-
-def local_file(storage: str) -> Path | None:
-    """The file a local storage lives in (journal path or ``sqlite:///`` file), else None."""
-    if not is_url(storage):
-        return Path(storage)
-    if storage.startswith("sqlite:///") and len(storage) > len("sqlite:///"):
-        name = storage[len("sqlite:///"):]
-        return None if name.startswith(":memory:") else Path(name)
-    return None
-
-
-def storage_scheme(storage: str) -> str:
-    """The scheme of an RDB URL (``sqlite``, ``postgresql``, ...), ``journal`` for a path.
-
-    Raises
-    ------
-    StorageError
-        An unknown scheme.
-    """
-    if not is_url(storage):
-        return "journal"
-    scheme = storage.split("://", 1)[0].split("+", 1)[0].lower()
-    if scheme not in _RDB_SCHEMES:
-        raise argument_error(StorageError, "storage", f"{storage!r}: unknown scheme {scheme!r}; "
-                             "expected a journal file path, sqlite:///FILE or "
-                             "postgresql://USER@HOST:PORT/DB")
-    return scheme
-
-
-#: Journal records that only add to a running trial, by their ``op_code`` in the journal file
-#: format (Optuna's ``JournalOperation``: CREATE_TRIAL 4, SET_TRIAL_PARAM 5,
-#: SET_TRIAL_INTERMEDIATE_VALUE 7, SET_TRIAL_USER_ATTR 8, SET_TRIAL_SYSTEM_ATTR 9): written at
-#: once, but not fsync'ed (:class:`TrialEndSyncBackend`).
-RUNNING_TRIAL_OPS = frozenset({4, 5, 7, 8, 9})
-
-
-class TrialEndSyncBackend(optuna.storages.journal.BaseJournalBackend):
-    """Optuna's journal file, fsync'ed when a trial ends instead of after every record.
-
-    Reading is Optuna's :class:`~optuna.storages.journal.JournalFileBackend`; appending writes
-    the same JSON lines under the same lock, and flushes them to the operating system at once
-    (a killed process loses nothing written). Only a record that ends a trial (its state and
-    value) or changes the study is also fsync'ed, which puts every earlier record of the file on
-    the disk too: a machine that goes down loses at most the records of running trials, which a
-    resume discards anyway. A trial writes about twenty records (each parameter, each
-    intermediate value); fsyncing each took about 2 % of a ``tune --trials 200``.
-
-    Parameters
-    ----------
-    path : Path
-        The journal file.
-    lock : optuna.storages.journal.JournalFileSymlinkLock
-        The lock every writer of the file takes.
-    """
-
-    def __init__(self, path: Path, lock: Any) -> None:
-        self._path = str(path)
-        self._lock = lock
-        self._reader = optuna.storages.journal.JournalFileBackend(self._path, lock_obj=lock)
-
-    def read_logs(self, log_number_from: int) -> Any:
-        """The records from ``log_number_from`` on (Optuna's reader)."""
-        return self._reader.read_logs(log_number_from)
-
-    def append_logs(self, logs: list[dict[str, Any]]) -> None:
-        """Append ``logs`` as JSON lines; fsync unless they only add to running trials."""
-        text = "\n".join(json.dumps(log, separators=(",", ":")) for log in logs) + "\n"
-        sync = any(log.get("op_code") not in RUNNING_TRIAL_OPS for log in logs)
-        self._lock.acquire()
-        try:
-            with open(self._path, "ab") as f:
-                f.write(text.encode("utf-8"))
-                f.flush()
-                if sync:
-                    os.fsync(f.fileno())
-        finally:
-            self._lock.release()
-
-
-def open_storage(storage: str) -> optuna.storages.BaseStorage:
-    """Open a storage (module docstring).
-
-    Parameters
-    ----------
-    storage : str
-        A journal file path or an RDB URL.
-
-    Returns
-    -------
-    optuna.storages.BaseStorage
-
-    Raises
-    ------
-    StorageError
-        Unknown scheme, unreachable server, unwritable file.
-    """
-    if not is_url(storage):
-        path = Path(storage)
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            # Optuna's own symlink lock, with a short grace period: a lock left by a writer
-            # killed inside an append (it holds the lock for milliseconds) is taken over after
-            # JOURNAL_LOCK_GRACE_S instead of Optuna's default 30 s
-            lock = optuna.storages.journal.JournalFileSymlinkLock(
-                str(path), grace_period=JOURNAL_LOCK_GRACE_S)
-            backend = TrialEndSyncBackend(path, lock)
-        except OSError as exc:
-            raise StorageError(f"{storage}: cannot open the journal file ({exc})") from None
-        return optuna.storages.JournalStorage(backend)
-    scheme = storage_scheme(storage)
-    kwargs: dict[str, Any] = {}
-    if scheme == "sqlite":
-        file = local_file(storage)
-        if file is not None:
-            file.parent.mkdir(parents=True, exist_ok=True)
-        kwargs["engine_kwargs"] = {"connect_args": {"timeout": 60}}
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return optuna.storages.RDBStorage(storage, heartbeat_interval=HEARTBEAT_INTERVAL,
-                                              grace_period=GRACE_PERIOD, **kwargs)
-    except Exception as exc:  # SQLAlchemy/driver errors: connection refused, bad URL, ...
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise argument_error(StorageError, "storage",
-                             f"{redact_url(storage)}: cannot open ({first})") from None
-
-
-def redact_url(url: str) -> str:
-    """The URL without its password."""
-    if "://" not in url or "@" not in url:
-        return url
-    scheme, rest = url.split("://", 1)
-    cred, host = rest.rsplit("@", 1)
-    user = cred.split(":", 1)[0]
-    return f"{scheme}://{user}{':***' if ':' in cred else ''}@{host}"
-
-
-@contextlib.contextmanager
-def local_lock(storage: str) -> Iterator[bool]:
-    """Hold a shared ``flock`` on ``<storage file>.tune-lock`` for the duration.
-
-    Yields
-    ------
-    bool
-        True if no other process held the lock when we took it (this ``tune`` is alone on the
-        storage, so RUNNING trials are leftovers of a killed run). Always False for a server.
-    """
-    file = local_file(storage)
-    if file is None:
-        yield False
-        return
-    file.parent.mkdir(parents=True, exist_ok=True)
-    lock_path = file.with_name(file.name + ".tune-lock")
-    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            alone = True
-        except BlockingIOError:
-            alone = False
-        fcntl.flock(fd, fcntl.LOCK_SH)  # converts (or waits for a cleaner to finish)
-        yield alone
-    finally:
-        os.close(fd)
-
-
-def repair_journal(path: Path) -> bool:
-    """Drop a torn last line of a journal file (a write cut by a crash). Only when alone.
-
-    Returns
-    -------
-    bool
-        True if the file was truncated.
-    """
-    if not path.exists() or path.stat().st_size == 0:
-        return False
-    with open(path, "rb+") as fh:
-        fh.seek(0, os.SEEK_END)
-        size = fh.tell()
-        fh.seek(max(0, size - 1))
-        if fh.read(1) == b"\n":
-            return False
-        # find the last newline
-        pos = size
-        block = 4096
-        keep = 0
-        while pos > 0:
-            start = max(0, pos - block)
-            fh.seek(start)
-            chunk = fh.read(pos - start)
-            idx = chunk.rfind(b"\n")
-            if idx >= 0:
-                keep = start + idx + 1
-                break
-            pos = start
-        fh.truncate(keep)
-        fh.flush()
-        os.fsync(fh.fileno())
-    return True
 
 
 def fail_leftover_trials(study: optuna.Study) -> int:
@@ -428,9 +144,9 @@ class StudySpec:
         ``tpe`` (default) or ``cmaes`` (:mod:`pneutune.tune.samplers`; ``gp`` for benchmarks).
         Stored with the study when not ``tpe``: a study is resumed only with its own sampler.
     pruner : str or None
-        ``wilcoxon``, ``median`` or ``none`` (:func:`make_pruner`); None: the study's own (a
-        new study: :data:`DEFAULT_PRUNER`). Stored with the study when not ``median``: a study
-        is resumed only with its own pruner.
+        ``wilcoxon``, ``median`` or ``none`` (:func:`~pneutune.tune.pruners.make_pruner`);
+        None: the study's own (a new study: :data:`~pneutune.tune.pruners.DEFAULT_PRUNER`).
+        Stored with the study when not ``median``: a study is resumed only with its own pruner.
     """
 
     storage: str
@@ -487,7 +203,7 @@ def prepare_study(spec: StudySpec, model: ModelConfig) -> optuna.Study:
 
     A new study gets its metadata and, as its first trial, the paper's parameters (then those
     of ``spec.extra_first``). ``spec.pruner`` None takes the study's own pruner (a new study:
-    :data:`DEFAULT_PRUNER`; :func:`study_pruner` tells which).
+    :data:`~pneutune.tune.pruners.DEFAULT_PRUNER`; :func:`study_pruner` tells which).
 
     Raises
     ------
@@ -722,8 +438,6 @@ def _run_processes(spec: StudySpec, model: ModelConfig, study: optuna.Study,
         raise WorkerError(f"worker process(es) failed: {bad} (see the traceback above)")
 
 
-__all__ = ["DEFAULT_JOURNAL", "DEFAULT_PRUNER", "N_STARTUP_TRIALS", "PRUNERS", "RunSummary",
-           "StorageError", "StudyMismatchError", "StudySpec", "WorkerError", "check_pruner",
-           "default_study_name", "fail_leftover_trials", "finished", "local_file", "local_lock",
-           "make_pruner", "open_storage", "prepare_study", "redact_url", "repair_journal",
-           "run_study", "sampler_seed", "storage_scheme", "study_pruner", "trial_counts", "work"]
+__all__ = ["RunSummary", "StudyMismatchError", "StudySpec", "WorkerError", "default_study_name",
+           "fail_leftover_trials", "finished", "prepare_study", "run_study", "sampler_seed",
+           "trial_counts", "work"]
