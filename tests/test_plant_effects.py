@@ -17,7 +17,7 @@ from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ConfigError
 from pneutune.control.physics.flow import signed_flow
 from pneutune.control.physics.friction import stribeck_force
-from pneutune.control.plant import dynamics
+from pneutune.control.plant import dynamics, flows
 from pneutune.control.plant.params import (
     P_AA,
     P_AB,
@@ -270,7 +270,7 @@ def test_line_conductance_conserves_mass_and_restricts_the_flow(C_line: float) -
     p = pp.vec
     p0, T0 = p[P_P0], p[P_T0]
     s = dynamics.initial_state(p, 0.02, p0, p0)
-    m_in, h, m_sup = dynamics._line_flow(p, s, 0, 1.0, 0.0, P_S, p0, T0)
+    m_in, h, m_sup = flows.line_flow(p, s, 0, 1.0, 0.0, P_S, p0, T0)
     alone = signed_flow(p[P_C], p[P_B], P_S, p0, T0)
     assert m_in == pytest.approx(m_sup, rel=1e-6)
     assert h == pytest.approx(m_in * T0, rel=1e-12)  # inflow carries the junction's T0
@@ -284,7 +284,7 @@ def test_wide_line_approaches_the_valve_alone() -> None:
     p = pp.vec
     p0, T0 = p[P_P0], p[P_T0]
     s = dynamics.initial_state(p, 0.02, p0, p0)
-    m_in, _, m_sup = dynamics._line_flow(p, s, 0, 1.0, 0.0, P_S, p0, T0)
+    m_in, _, m_sup = flows.line_flow(p, s, 0, 1.0, 0.0, P_S, p0, T0)
     alone = signed_flow(p[P_C], p[P_B], P_S, p0, T0)
     assert m_in == pytest.approx(alone, rel=0.01)
     assert m_sup == pytest.approx(m_in, rel=1e-6)
