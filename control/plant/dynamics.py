@@ -68,6 +68,7 @@ from pneutune.control.physics.friction import (
     stribeck_stiffness,
 )
 from pneutune.control.plant.flows import chamber_flows, open_fraction, rig_flows
+from pneutune.control.plant.illinois import illinois_update
 from pneutune.control.plant.params import (
     IO_MAX,
     N_STATE,
@@ -364,16 +365,7 @@ def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: flo
         fc = (xc if comp == 0 else vc) - target
         if abs(fc) < tol or (b - a) * h < 1.0e-13:
             break
-        if fc * fb > 0.0:
-            b, fb = c, fc
-            if side == -1:
-                fa *= 0.5
-            side = -1
-        else:
-            a, fa = c, fc
-            if side == 1:
-                fb *= 0.5
-            side = 1
+        a, fa, b, fb, side = illinois_update(a, fa, b, fb, c, fc, side)
     return c
 
 

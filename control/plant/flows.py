@@ -17,6 +17,7 @@ import numpy as np
 from pneutune.control.constants import T_REF
 from pneutune.control.numba_cache import njit
 from pneutune.control.physics.flow import signed_flow, signed_flow_k, signed_flow_t
+from pneutune.control.plant.illinois import illinois_update
 from pneutune.control.plant.params import (
     P_B,
     P_C,
@@ -163,16 +164,7 @@ def line_flow(p: np.ndarray, s: np.ndarray, side: int, y_in: float, y_out: float
         if f == 0.0 or abs(pj - prev) < tol:
             break
         prev = pj
-        if f * fb > 0.0:
-            b, fb = pj, f
-            if side_ == -1:
-                fa *= 0.5
-            side_ = -1
-        else:
-            a, fa = pj, f
-            if side_ == 1:
-                fb *= 0.5
-            side_ = 1
+        a, fa, b, fb, side_ = illinois_update(a, fa, b, fb, pj, f, side_)
     s[S_PJ + side] = pj
     m_line = signed_flow_t(CL, p[P_LINEB + side], pj, pc, T0, Tc)
     m_sup = y_in * signed_flow(p[P_C + i_in], p[P_B + i_in], p_sup, pj, T0) if y_in > 0.0 else 0.0
