@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -185,9 +186,12 @@ def test_ctrl_c_stops_the_run_and_writes_the_log(tmp_path):
     """SIGINT (what Ctrl-C sends) reaches record alone: fail-safe duties, exit 130, the log of
     the completed segments written and valid."""
     out = tmp_path / "i.mcap"
+    # a process started in the background of a non-interactive shell inherits SIGINT ignored,
+    # and so would record (as a shell's background job should): give it a terminal's default
     proc = subprocess.run([sys.executable, "-m", "pneutune.control.cli.record", "--experiment",
                            "commissioning", "--rig", _spy("--interrupt-at", "3000"), "--out",
-                           str(out)], capture_output=True, text=True, timeout=120, check=False)
+                           str(out)], capture_output=True, text=True, timeout=120, check=False,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert proc.returncode == EXIT_INTERRUPTED, proc.stderr
     assert "error: interrupted" in proc.stderr
     log = read_run_log(out)
