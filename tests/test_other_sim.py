@@ -101,6 +101,7 @@ def test_driver_passes_the_check_at_a_sample_period() -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
+@pytest.mark.slow  # 52 s of the protocol at 0.5 ms through the driver: about 25 s
 def test_record_runs_the_identification_protocol_on_the_other_simulator(tmp_path: Path) -> None:
     """The rest and chamber-A valve tests at 0.5 ms (52 s of the protocol): exit 0, every sample
     logged at 0.5 ms, the rig block's Ts the plant's 4 ms, and one contact onto x_max."""

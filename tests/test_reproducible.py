@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pneutune.control.logs.reader import read_run_log
 
@@ -30,6 +31,7 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+@pytest.mark.slow  # two fresh processes, each loading every compiled kernel: about 22 s
 def test_seeded_identification_run_is_identical_in_two_processes(tmp_path: Path) -> None:
     first = _simulate(tmp_path / "a.mcap", 3)
     second = _simulate(tmp_path / "b.mcap", 3)
