@@ -11,9 +11,10 @@ Storage (``--storage``):
   ``mysql+pymysql://...``: Optuna's RDB storage, with a heartbeat every 10 s so that the trials
   of a killed worker are failed after 30 s (``optuna.storages.fail_stale_trials``).
 
-A journal left with a torn last line by a killed writer is repaired on open
-(:func:`repair_journal`); a local storage is held by one ``tune`` at a time (:func:`local_lock`),
-which may then fail the trials a killed run left RUNNING.
+A ``tune`` that finds no other ``tune`` on a local storage (:func:`local_lock`) drops a torn
+last line a killed writer left in its journal (:func:`repair_journal`) before it opens the study,
+and then fails the trials a killed run left RUNNING
+(:func:`pneutune.tune.study.fail_leftover_trials`).
 """
 
 from __future__ import annotations
