@@ -37,6 +37,7 @@ from pneutune.control.plant.params import (
     S_STUCK,
     S_V,
     S_X,
+    STEP_STIFFNESS,
     PlantParams,
     pack_plant,
 )
@@ -393,9 +394,11 @@ def test_stribeck_stiffness_is_the_steepest_slope_at_or_above_u(alpha: float,
 
 def test_the_papers_friction_never_shortens_the_step() -> None:
     """Paper rig: the steepest |dF_f/dv| is b_v = 3500 N s/m (the Stribeck slope peaks at
-    25 N * sqrt(2/e) / 5 mm/s = 4289 N s/m, minus b_v = 789), so 1.4 M / k = 1.4 * 1.05 / 3500
-    = 420 us >= sim.dt = 400 us: the run keeps the fixed 0.4 ms grid at every speed."""
+    25 N * sqrt(2/e) / 5 mm/s = 4289 N s/m, minus b_v = 789), so STEP_STIFFNESS M / k =
+    1.4 * 1.05 / 3500 = 420 us >= sim.dt = 400 us: the run keeps the fixed 0.4 ms grid at every
+    speed."""
     pp = _params()
+    assert STEP_STIFFNESS == 1.4
     assert plant._sliding_step(pp.vec, 0.0) == pytest.approx(4.2e-4, rel=1e-9)
     assert plant._sliding_step(pp.vec, 0.0) >= pp.vec[P_DT]
 
@@ -403,10 +406,11 @@ def test_the_papers_friction_never_shortens_the_step() -> None:
 def test_a_steep_law_slides_as_solve_ivp_with_the_default_step() -> None:
     """A steep Stribeck law, F_S = 150 N, F_C = 50 N, v_s = 2.5 mm/s (the falling branch's
     eigenvalue reaches ((F_S - F_C) max|g'| - b_v)/M = (100 * 0.858 / 2.5e-3 - 3500)/1.05 =
-    2.9e4 1/s, so RK4 needs steps of 48 us there), sim.dt = 400 us: a force step of F_S + 10 N
-    breaks the piston away; where it sticks again (506.2 um) matches solve_ivp (rtol 1e-10) to
-    0.01 % (measured: 2e-6; with 0.4 ms steps throughout, the step not following the speed, it is
-    0.09 % off). The step follows the speed: short at the break-away, 0.4 ms while stuck."""
+    2.9e4 1/s, so RK4 needs steps of 1.4 M / k = 48 us there), sim.dt = 400 us: a force step of
+    F_S + 10 N breaks the piston away; where it sticks again (506.2 um) matches solve_ivp (rtol
+    1e-10) to 0.01 % (measured: 2e-6, and 1.1e-5 with the factor 2; with 0.4 ms steps
+    throughout, the step not following the speed, it is 0.09 % off). The step follows the
+    speed: short at the break-away, 0.4 ms while stuck."""
     f_s, f_c, v_s = 150.0, 50.0, 2.5e-3
     x0 = 0.5 * (X_MIN + X_MAX)
     force = f_s + 10.0
@@ -414,7 +418,8 @@ def test_a_steep_law_slides_as_solve_ivp_with_the_default_step() -> None:
     pp = _params(law, {"disturbance": {"force_steps": [[0.01, force]]}})
     assert pp.vec[P_DT] == 4.0e-4
     assert plant._sliding_step(pp.vec, 0.0) == pytest.approx(
-        1.4 * 1.05 / (100.0 * 2.0 * math.sqrt(0.5) * math.exp(-0.5) / v_s - 3500.0), rel=1e-6)
+        STEP_STIFFNESS * 1.05 / (100.0 * 2.0 * math.sqrt(0.5) * math.exp(-0.5) / v_s - 3500.0),
+        rel=1e-6)
     pa, pb = plant.balanced_pressures(pp.vec, 3.0e5)
     s = plant.initial_state(pp.vec, x0, pa, pb)
     _advance(pp, s, 0.3)

@@ -41,8 +41,9 @@ Integration
     Classical RK4 with steps of at most ``sim.dt``, split at every valve switching instant,
     controller sample and force step, so that the right-hand side is smooth inside every step.
     The step size comes from a convergence study (docs/integration.md). While sliding, a step
-    is also at most ``1.4 M / k(u)``, k the largest |dF_f/dv| of Eq. (2) at the speeds u the
-    step passes through (:func:`~pneutune.control.physics.friction.stribeck_stiffness`): the
+    is also at most ``1.4 M / k(u)`` (``params.STEP_STIFFNESS``), k the largest |dF_f/dv| of
+    Eq. (2) at the speeds u the step passes through, at least b_v
+    (:func:`~pneutune.control.physics.friction.stribeck_stiffness`): the
     falling Stribeck branch of a steep friction law (large F_S - F_C, small v_s) needs steps
     of tens of microseconds, but only near v = 0; elsewhere, and while stuck, ``sim.dt``
     stands. A step that ends slower than the speed its length was chosen for is taken again,
@@ -101,6 +102,7 @@ from pneutune.control.plant.params import (
     P_RPEAK,
     P_SIGMA0,
     P_SIGMA1,
+    P_STEPK,
     P_SUPB,
     P_SUPC,
     P_SUPVOL,
@@ -135,7 +137,6 @@ from pneutune.control.plant.params import (
     S_XF,
     S_Y0,
     S_Z,
-    STEP_STIFFNESS,
 )
 from pneutune.control.plant.valves import EPS_T, next_event, process_events, write_duty
 
@@ -373,7 +374,7 @@ def _locate(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: flo
 def _sliding_step(p: np.ndarray, u: float) -> float:
     """Longest RK4 step while sliding at speeds of at least ``u`` [s] (module docstring)."""
     k = stribeck_stiffness(u, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV], p[P_RPEAK])
-    return STEP_STIFFNESS * p[P_M] / k
+    return p[P_STEPK] * p[P_M] / k
 
 
 @njit(cache=True)
@@ -384,7 +385,7 @@ def _lugre_step(p: np.ndarray, v: float) -> float:
     av = abs(v)
     if av > 0.0:
         g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA])
-        h_z = STEP_STIFFNESS * g / (p[P_SIGMA0] * av)
+        h_z = p[P_STEPK] * g / (p[P_SIGMA0] * av)
         if h_z < h:
             h = h_z
     return h
@@ -427,7 +428,7 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
     h_min = p[P_DTMIN]
     stiff = h_min < h and not lugre
     u_free = p[P_UFREE]  # above this speed only the viscous mode limits the step, to h_visc
-    h_visc = STEP_STIFFNESS * p[P_M] / p[P_BV] if p[P_BV] > 0.0 else np.inf
+    h_visc = p[P_STEPK] * p[P_M] / p[P_BV] if p[P_BV] > 0.0 else np.inf
     max_steps = nsteps
     if stiff:
         max_steps = max(nsteps, math.ceil(h_total / h_min - 1.0e-9))

@@ -39,8 +39,12 @@ P_XLAG, P_PLAG, P_PSTEP, P_IODELAY = range(70, 74)
 P_SUPC, P_SUPB, P_SUPVOL = range(74, 77)  # supply line (0 conductance: a stiff supply)
 P_GENERAL = 77  # 1.0 when the flows need more than Eq. (7) per valve (lag, line, heat, supply)
 P_EXTSTATE = 78  # 1.0 when states beyond the paper's are integrated (heat, LuGre, supply)
-N_PARAMS = 79
-#: RK4 keeps ``h * stiffness / M`` at most this (its stability limit on the real axis is 2.79).
+P_STEPK = 79  # the step rule's factor: h * stiffness / M at most this (STEP_STIFFNESS) [-]
+N_PARAMS = 80
+#: RK4 keeps ``h * stiffness / M`` at most this while sliding (its stability limit on the real
+#: axis is 2.79). :func:`pack_plant` copies it into ``P_STEPK``, which the compiled step rule
+#: reads, so that ``benchmarks/step_rule.py`` can compare factors in one process; why it stays
+#: 1.4: docs/integration.md, "The step rule's factor".
 STEP_STIFFNESS: float = 1.4
 
 
@@ -73,22 +77,22 @@ def set_step_limits(v: np.ndarray) -> None:
     """Fill ``P_RPEAK``, ``P_DTMIN`` and ``P_UFREE`` of a parameter vector from its friction,
     mass and ``P_DT`` (call again after changing any of them).
 
-    ``P_DTMIN = min(P_DT, STEP_STIFFNESS M / k_max)``, k_max the largest |dF_f/dv| at any speed
+    ``P_DTMIN = min(P_DT, P_STEPK M / k_max)``, k_max the largest |dF_f/dv| at any speed
     (:func:`~pneutune.control.physics.friction.stribeck_stiffness` at u = 0): the shortest step
     the integrator may take while sliding. When it equals ``P_DT`` the friction never shortens
     a step. ``P_UFREE``: the speed above which the Stribeck branch needs no shorter step than
-    ``min(P_DT, STEP_STIFFNESS M / b_v)`` (0 when it never does), so that a fast step costs no
-    evaluation of the slope.
+    ``min(P_DT, P_STEPK M / b_v)`` (0 when it never does), so that a fast step costs no
+    evaluation of the slope. ``P_STEPK`` must be set (:func:`pack_plant` sets it).
     """
     v[P_RPEAK] = stribeck_peak(v[P_ALPHA])
 
     def k(u: float) -> float:
         return stribeck_stiffness(u, v[P_FS], v[P_FC], v[P_VS], v[P_ALPHA], v[P_BV], v[P_RPEAK])
 
-    # above P_UFREE the step needs no more than min(P_DT, 1.4 M / b_v): the Stribeck branch is
-    # no steeper there than what P_DT or the viscous mode allows anyway
-    k_flat = max(STEP_STIFFNESS * v[P_M] / v[P_DT], v[P_BV])
-    v[P_DTMIN] = min(v[P_DT], STEP_STIFFNESS * v[P_M] / k(0.0))
+    # above P_UFREE the step needs no more than min(P_DT, P_STEPK M / b_v): the Stribeck branch
+    # is no steeper there than what P_DT or the viscous mode allows anyway
+    k_flat = max(v[P_STEPK] * v[P_M] / v[P_DT], v[P_BV])
+    v[P_DTMIN] = min(v[P_DT], v[P_STEPK] * v[P_M] / k(0.0))
     if k(0.0) <= k_flat:
         v[P_UFREE] = 0.0
     else:  # k(u) falls with u above the peak: bisect for k(u) = k_flat
@@ -129,9 +133,9 @@ def _pack_effects(cfg: PlantConfig, v: np.ndarray) -> None:
     v[P_SIGMA0], v[P_SIGMA1] = f.sigma0, f.sigma1
     if f.sigma0 > 0.0:
         # the bristles' spring-mass mode (omega h <= 0.5) and their damping with the viscous
-        # term (h (sigma1 + b_v) / M <= STEP_STIFFNESS) bound the step
+        # term (h (sigma1 + b_v) / M <= P_STEPK) bound the step
         v[P_DTLUGRE] = min(v[P_DT], 0.5 * np.sqrt(v[P_M] / f.sigma0),
-                           STEP_STIFFNESS * v[P_M] / max(f.sigma1 + f.b_v, 1.0e-12))
+                           v[P_STEPK] * v[P_M] / max(f.sigma1 + f.b_v, 1.0e-12))
     s = cfg.sensors
     v[P_XLAG], v[P_PLAG], v[P_PSTEP] = s.x_lag, s.p_lag, s.p_step
     v[P_IODELAY] = cfg.io.delay
@@ -171,6 +175,7 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     d = cfg.disturbance
     v[P_FN], v[P_DA], v[P_DB] = d.F_n, d.D_a, d.D_b
     v[P_DT] = cfg.sim.dt  # the longest step; sliding friction may shorten it (dynamics)
+    v[P_STEPK] = STEP_STIFFNESS  # read now, not at import: a benchmark may compare factors
     set_step_limits(v)
     s = cfg.sensors
     v[P_XNOISE], v[P_XSTEP], v[P_PNOISE] = s.x_noise, s.x_step, s.p_noise
