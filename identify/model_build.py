@@ -20,7 +20,7 @@ from pneutune.control.constants import MODEL_SCHEMA, VALVES, WEAK_B_SPAN
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.plant import PlantConfig
 
-from .bounds import ThetaBounds
+from .bounds import ThetaBounds, Z
 from .dataset import Dataset, display_names
 from .friction_choice import STICTION_PRIOR_MAX
 from .friction_prior import PriorFriction
@@ -217,6 +217,15 @@ def build_model(data: Dataset, logs: Dataset | Sequence[Dataset], valves: ValveI
                        "C_max": c_hi, "b_min": b_lo, "b_max": b_hi,
                        "delay_on": sw["delay_on"], "delay_off": sw["delay_off"],
                        "min_pulse": sw["min_pulse"]}
+        mp_range = getattr(valves, "min_pulse_range_", None)
+        if valves.timing_ is not None and mp_range is not None:
+            mp_lo, mp_hi = mp_range[i]
+            vdict[name]["min_pulse_min"], vdict[name]["min_pulse_max"] = mp_lo, mp_hi
+            basis[f"valves.{name}.min_pulse"] = (
+                f"data: the minimum pulses whose chamber fit is within 1 + {Z:g}^2/n of the "
+                f"best (n windows), {mp_lo * 1e3:.2f}-{mp_hi * 1e3:.2f} ms; the upper end "
+                f"taken, so the PWM curve commands no pulse shorter than the log showed to "
+                f"open the valve")
         v_duty, v_ratio = _curve_points(valves.knots_, valves.curves_[i])
         vdict[name]["pwm"] = {"duty": v_duty, "ratio": v_ratio}
     f = friction

@@ -43,6 +43,7 @@ from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.params import P_DOFF, P_DON, P_MINP, pack_plant
 from pneutune.control.plant.valves import open_fractions, valve_open_fractions
 
+from .bounds import Z
 from .valve_onsets import Onset
 
 #: Longest delay searched, in PWM periods (the plant allows up to 4).
@@ -53,6 +54,9 @@ PHASE_TOLERANCE = 0.1
 LOOP_DELAY_POINTS = 9
 #: Relative cost advantage a loop delay needs over none, and the tolerance of its range.
 LOOP_DELAY_TOLERANCE = 0.05
+#: Step of the minimum-pulse profile (:func:`min_pulse_range`), in PWM periods (0.042 ms at
+#: 60 Hz).
+MIN_PULSE_STEP = 1.0 / 400
 #: Slack around a valve's step-onset range when it bounds the opening delay [s] (the onset grid
 #: step, and the carrier-timed opening of the averaged model, are coarser than the search).
 ONSET_MARGIN = 2.5e-4
@@ -204,6 +208,10 @@ class TimingCost:
         """What the switching depends on (the minimum pulse is capped at the opening delay)."""
         return float(tm.delay_on), float(tm.delay_off), float(min(tm.min_pulse, tm.delay_on))
 
+    def windows(self, ch: int) -> int:
+        """Number of chamber ``ch``'s windows that carry weight."""
+        return int(np.count_nonzero(self._weights[ch]))
+
     def _column(self, i: int, tm: Timing, phase: float) -> np.ndarray:
         key = (i, *self._key(tm), phase, self.frac.write_delay)
         col = self._columns.get(key)
@@ -335,6 +343,54 @@ def phase_search(cost: Callable[[float], float], period: float, coarse: int = 24
         if c < best:
             best_ph, best = ph, c
     return best_ph, best, costs
+
+
+def min_pulse_range(cost: TimingCost, timings: Sequence[Timing], phase: float, i: int,
+                    step: float) -> tuple[float, float]:
+    """The minimum pulses of valve ``i`` the log cannot tell from the one found.
+
+    A minimum pulse only decides whether a command pulse opens the valve at all, so the cost is
+    flat between the lengths of the pulses the log holds: a closed loop whose controller never
+    commands a pulse shorter than 1.5 ms (its PWM curve steps over the dead zone) leaves every
+    minimum pulse up to 1.5 ms alike. The range is the profile-likelihood interval at the level
+    of the other ranges (±:data:`~pneutune.identify.bounds.Z` s.e.): from the minimum pulse
+    found, in steps of ``step`` each way, while the chamber's cost stays within a factor
+    ``1 + Z^2 / n`` of its cost there (n: the chamber's windows), and never above the opening
+    delay (contract 2's ``min_pulse <= delay_on``).
+
+    Parameters
+    ----------
+    cost : TimingCost
+        The chamber cost at the fitted conductances and pressure ratios.
+    timings : sequence of 4 Timing
+        The timings found; valve ``i``'s minimum pulse is varied, the others held.
+    phase : float
+        Carrier time at the log's first sample [s].
+    i : int
+        Valve index (a_in, a_out, b_in, b_out).
+    step : float
+        Scan step [s].
+
+    Returns
+    -------
+    (float, float)
+        Lowest and highest minimum pulse within the interval [s].
+    """
+    ch = i // 2
+    tm = timings[i]
+    limit = cost(ch, timings, phase) * (1.0 + Z**2 / max(cost.windows(ch), 1))
+
+    def fits(mp: float) -> bool:
+        cand = Timing(tm.delay_on, tm.delay_off, mp)
+        return cost(ch, [*timings[:i], cand, *timings[i + 1:]], phase) <= limit
+
+    found = min(tm.min_pulse, tm.delay_on)
+    lo = hi = found
+    while lo > 0.0 and fits(max(0.0, lo - step)):
+        lo = max(0.0, lo - step)
+    while hi < tm.delay_on and fits(min(tm.delay_on, hi + step)):
+        hi = min(tm.delay_on, hi + step)
+    return lo, hi
 
 
 def timing_bounds(period: float) -> tuple[float, float]:
@@ -594,7 +650,7 @@ def search_timings(frac: OpenFractions, timings: Sequence[Timing],
                         loop_delay_range=span, loop_delay_costs=scan)
 
 
-__all__ = ["LOOP_DELAY_POINTS", "LOOP_DELAY_TOLERANCE", "MAX_DELAY_PERIODS", "ONSET_MARGIN",
-           "PHASE_TOLERANCE", "CostFor", "OpenFractions", "Refit", "Timing", "TimingCost",
-           "TimingSearch", "coordinate_search", "opening_bounds", "phase_search",
-           "search_timings", "timing_bounds"]
+__all__ = ["LOOP_DELAY_POINTS", "LOOP_DELAY_TOLERANCE", "MAX_DELAY_PERIODS", "MIN_PULSE_STEP",
+           "ONSET_MARGIN", "PHASE_TOLERANCE", "CostFor", "OpenFractions", "Refit", "Timing",
+           "TimingCost", "TimingSearch", "coordinate_search", "min_pulse_range",
+           "opening_bounds", "phase_search", "search_timings", "timing_bounds"]

@@ -57,8 +57,16 @@ from .valve_leak import closed_stretches
 from .valve_onsets import Onset, step_onsets
 from .valve_residuals import chamber_window_residuals, knot_window_sums
 from .valve_timing import LOOP_DELAY_TOLERANCE as LOOP_DELAY_TOLERANCE  # re-exported
+from .valve_timing import (
+    MIN_PULSE_STEP,
+    OpenFractions,
+    Timing,
+    TimingCost,
+    min_pulse_range,
+    search_timings,
+    timing_bounds,
+)
 from .valve_timing import ONSET_MARGIN as ONSET_MARGIN  # re-exported
-from .valve_timing import OpenFractions, Timing, TimingCost, search_timings, timing_bounds
 
 #: Parameter scaling for the solver: C in 1e-9 m^3/(s Pa), leak in 1e-10, D in 1e3 Pa/s.
 _C_UNIT, _LEAK_UNIT, _D_UNIT = 1e-9, 1e-10, 1e3
@@ -188,7 +196,11 @@ class ValveIdentifier(Identifier):
         Open fraction of each valve in each sample used by the final fit (the PWM curves', or
         the exact opening of the timing stage).
     timing_ : tuple of Timing or None
-        Delays and minimum pulse per valve from the timing stage (None: not adopted).
+        Delays and minimum pulse per valve from the timing stage (None: not adopted). The
+        minimum pulse is the top of its range ``min_pulse_range_``.
+    min_pulse_range_ : list of (float, float) or None
+        Per valve, the minimum pulses the timing stage cannot tell apart
+        (:func:`~.valve_timing.min_pulse_range`) [s]; None without the timing stage.
     phase_ : float
         Carrier time at the log's first sample found by the timing stage [s].
     timing_rss_ : (float, float)
@@ -503,6 +515,7 @@ class ValveIdentifier(Identifier):
                                   f_scale=self.f_scale)
         theta = sol.x
         self.timing_ = None
+        self.min_pulse_range_: list[tuple[float, float]] | None = None
         #: the loop delay (every duty acting this long after its sample) and its range [s];
         #: None without the timing stage
         self.loop_delay_: float | None = None
@@ -597,25 +610,57 @@ class ValveIdentifier(Identifier):
                                refit)
         self._phase_costs = found.phase_costs
         self.loop_delay_costs_ = found.loop_delay_costs
-        ratios = frac(found.timings, found.phase)[:-1]
+        timings = self._longest_min_pulses(cost_for(found.theta, found.theta[1:8:2].copy()),
+                                           found.timings, found.phase, period)
+        ratios = frac(timings, found.phase)[:-1]
         sol = self._least_squares(found.theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
         self.timing_rss_ = (rss, rss_avg)
-        self.timing_tried_ = (found.timings, found.phase)
+        self.timing_tried_ = (timings, found.phase)
         if not rss < rss_avg:
             self.notes_.append(
                 f"valves: the exact valve opening per sample (timings searched) fits the "
                 f"chamber pressures no better than the averaged PWM curve (residual "
                 f"{rss:.3g} vs {rss_avg:.3g} kPa²); the averaged model is kept")
             return None
-        self.timing_ = found.timings
+        self.timing_ = timings
+        self.min_pulse_range_ = self._min_pulse_ranges
         self.phase_ = found.phase
         self.loop_delay_ = found.loop_delay
         self.loop_delay_range_ = found.loop_delay_range
         new_curves = np.array([effective_open_fraction(self.knots_, period, t.delay_on,
                                                        t.delay_off, t.min_pulse)
-                               for t in found.timings])
+                               for t in timings])
         return sol, new_curves, ratios
+
+    def _longest_min_pulses(self, cost: TimingCost, timings: Sequence[Timing], phase: float,
+                            period: float) -> tuple[Timing, ...]:
+        """Each valve's minimum pulse moved to the top of the range the log cannot tell apart
+        (:func:`~.valve_timing.min_pulse_range`; kept in ``_min_pulse_ranges``), with a note
+        where that range is wide.
+
+        Within the range every pulse the log holds opens the valve or not alike, so the log
+        says nothing of the pulses between its ends. At the top, the model's PWM curve (and the
+        controller's, which is the model's) steps over them: the controller then commands no
+        pulse shorter than the log showed to open the valve. At the bottom it would count on
+        pulses that may never open it, a dead zone the tune never sees (a closed-loop log whose
+        controller stepped over the dead zone, tuned at the bottom, tracked 3-4 times worse on
+        the true plant than at the top).
+        """
+        step = MIN_PULSE_STEP * period
+        out = list(timings)
+        self._min_pulse_ranges = []
+        for i, tm in enumerate(timings):
+            lo, hi = min_pulse_range(cost, timings, phase, i, step)
+            self._min_pulse_ranges.append((lo, hi))
+            out[i] = Timing(tm.delay_on, tm.delay_off, hi)
+            if hi - lo > 2.0 * step:
+                self.notes_.append(
+                    f"valve {VALVES[i]}: the log cannot tell a minimum pulse of "
+                    f"{lo * 1e3:.2f} ms from one of {hi * 1e3:.2f} ms (it holds no pulse of a "
+                    f"length between); the model takes {hi * 1e3:.2f} ms, so its PWM curve "
+                    f"commands no pulse shorter than the log showed to open the valve")
+        return tuple(out)
 
     def _find_onsets(self, theta: np.ndarray, max_delay: float) -> None:
         """``onsets_`` from the fast logs at the averaged model's C and b, and a note."""

@@ -141,6 +141,12 @@ class ModelValve(_Strict):
     delay_off: float = Field(0.0, ge=0.0, le=0.05, description="Added: command-off to closed [s]")
     min_pulse: float = Field(0.0, ge=0.0, le=0.05,
                              description="Added: shortest command pulse that opens [s]")
+    min_pulse_min: float | None = Field(
+        None, ge=0.0, le=0.05, description="Added: lower end of the minimum pulses the log "
+        "cannot tell apart [s] (identify takes min_pulse at the upper end); absent: not "
+        "identified from the exact opening per sample")
+    min_pulse_max: float | None = Field(
+        None, ge=0.0, le=0.05, description="Added: upper end of that range [s]")
     pwm: PwmCurve | None = Field(None, description="Added: this valve's own PWM curve "
                                  "(absent: the top-level pwm, shared by the four)")
 
@@ -151,6 +157,10 @@ class ModelValve(_Strict):
         if self.min_pulse > self.delay_on:
             raise ValueError(f"min_pulse <= delay_on must hold, got min_pulse={self.min_pulse}, "
                              f"delay_on={self.delay_on}")
+        if (self.min_pulse_min is None) != (self.min_pulse_max is None):
+            raise ValueError("min_pulse_min and min_pulse_max must be given together")
+        if self.min_pulse_min is not None and self.min_pulse_max is not None:
+            _check_range("min_pulse", self.min_pulse_min, self.min_pulse, self.min_pulse_max)
         return self
 
 
