@@ -246,15 +246,16 @@ def test_a_log_of_the_disturbance_scenario_says_what_the_model_lacks(tmp_path):
 
 
 def test_a_corner_the_replay_cannot_settle_never_collapses_the_ranges(tmp_path, monkeypatch):
-    """The closed-loop log of ``_plant`` written with the integrator's step factor at 2 instead
-    of 1.4 (its steep Stribeck branch then takes 0.4 ms steps near v = 0): a different,
-    equally valid log. Its cross-check corners misfit the held-out log by about ten times the
-    best fit (x NRMSE 0.015-0.021 against 0.0018), and one range halved at a time never makes
-    them pass: the greedy cuts used to shrink the mass range to [1.28333, 1.28334] kg, F_S to
-    [173, 176] N and b_out's C to a point, all missing the truth. Now no range is halved more
-    than MAX_HALVINGS times for a corner; when those cuts run out, every range of the corner is
-    scaled alike to the largest common fraction that passes (at least NEAR_FRACTION), so every
-    range still holds the truth and the note says how the corner was met."""
+    """The closed-loop log of ``_plant`` written with the integrator's step factor at 2 (the
+    default since it replaced 1.4; the plant's steep Stribeck branch then takes 0.4 ms steps
+    near v = 0, which changed the log). Its cross-check corners misfit the held-out log by
+    about ten times the best fit (x NRMSE 0.015-0.021 against 0.0018), and one range halved at
+    a time never makes them pass: the greedy cuts used to shrink the mass range to [1.28333,
+    1.28334] kg, F_S to [173, 176] N and b_out's C to a point, all missing the truth. Now no
+    range is halved more than MAX_HALVINGS times for a corner; when those cuts run out, every
+    range of the corner is scaled alike to the largest common fraction that passes (at least
+    NEAR_FRACTION), so every range still holds the truth and the note says how the corner was
+    met."""
     from pneutune.control.plant import params
     from pneutune.identify.crosscheck import NEAR_FRACTION
 
@@ -263,7 +264,6 @@ def test_a_corner_the_replay_cannot_settle_never_collapses_the_ranges(tmp_path, 
     res = simulate_scenario(load_controller(PAPER), SCENARIOS["sine-0.75hz"], plant, seed=5)
     log = tmp_path / "run.mcap"
     res.recording().save(log, rig=plant.rig_metadata(), run={"seed": "5"})
-    monkeypatch.setattr(params, "STEP_STIFFNESS", 1.4)
     r = identify(log)
     cc = r.crosscheck
     assert cc is not None and cc.scaled  # the greedy cuts ran out on a corner

@@ -17,7 +17,7 @@ from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ConfigError
 from pneutune.control.physics.flow import signed_flow
 from pneutune.control.physics.friction import stribeck_force
-from pneutune.control.plant import dynamics, flows
+from pneutune.control.plant import dynamics, flows, params
 from pneutune.control.plant.params import (
     P_AA,
     P_AB,
@@ -95,16 +95,23 @@ def _pressures_for(p: np.ndarray, force: float, p_b: float = 2.0e5) -> tuple[flo
 
 # --- 1. everything off: the paper's model, bit for bit ----------------------------------------
 
-def test_all_effects_off_reproduce_the_golden_outputs_bit_for_bit() -> None:
-    """tests/data/plant_golden.npz was written before the effects existed (tests/plant_golden.py);
-    with every effect at its default the simulator must return exactly those arrays."""
+def test_all_effects_off_reproduce_the_golden_outputs_bit_for_bit(monkeypatch) -> None:
+    """tests/data/plant_golden.npz was written before the effects existed (tests/plant_golden.py),
+    when the step rule's factor was 1.4; with every effect at its default and that factor the
+    simulator must return exactly those arrays. With today's factor (2) the paper's rig and the
+    open-loop run still do (their friction never shortens a step); the golden's second plant,
+    whose steep Stribeck branch the factor limits near v = 0, may not."""
     assert PlantConfig().effects == ()
+    today = golden_outputs()
+    monkeypatch.setattr(params, "STEP_STIFFNESS", 1.4)
     got = golden_outputs()
     with np.load(GOLDEN) as golden:
         assert sorted(golden.files) == sorted(got)
         for key in golden.files:
             assert got[key].dtype == golden[key].dtype, key
             assert np.array_equal(got[key], golden[key]), key
+            if "/latched/" not in key:
+                assert np.array_equal(today[key], golden[key]), key
 
 
 # --- 2. configuration -------------------------------------------------------------------------

@@ -312,8 +312,9 @@ class SimConfig(_Strict):
 
     The default 0.4 ms comes from the convergence study of docs/integration.md: halving it
     moves the closed-loop tracking metrics E_p and E_rms by less than 0.005 mm. The integrator
-    further limits the step to ``1.4 M / b_v`` so that RK4 stays accurate on the stiff viscous
-    mode of light, heavily damped plants.
+    further limits the step while sliding to ``2 M / b_v`` (and less on a steep Stribeck branch
+    near v = 0) so that RK4 stays stable and accurate on the stiff viscous mode of light,
+    heavily damped plants.
     """
 
     dt: float = Field(4.0e-4, ge=1.0e-6, le=2.0e-3, description="Largest integration step [s]")

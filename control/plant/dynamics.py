@@ -41,7 +41,7 @@ Integration
     Classical RK4 with steps of at most ``sim.dt``, split at every valve switching instant,
     controller sample and force step, so that the right-hand side is smooth inside every step.
     The step size comes from a convergence study (docs/integration.md). While sliding, a step
-    is also at most ``1.4 M / k(u)`` (``params.STEP_STIFFNESS``), k the largest |dF_f/dv| of
+    is also at most ``2 M / k(u)`` (``params.STEP_STIFFNESS``), k the largest |dF_f/dv| of
     Eq. (2) at the speeds u the step passes through, at least b_v
     (:func:`~pneutune.control.physics.friction.stribeck_stiffness`): the
     falling Stribeck branch of a steep friction law (large F_S - F_C, small v_s) needs steps
