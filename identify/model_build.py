@@ -223,9 +223,7 @@ def build_model(data: Dataset, logs: Dataset | Sequence[Dataset], valves: ValveI
             vdict[name]["min_pulse_min"], vdict[name]["min_pulse_max"] = mp_lo, mp_hi
             basis[f"valves.{name}.min_pulse"] = (
                 f"data: the minimum pulses whose chamber fit is within 1 + {Z:g}^2/n of the "
-                f"best (n windows), {mp_lo * 1e3:.2f}-{mp_hi * 1e3:.2f} ms; the upper end "
-                f"taken, so the PWM curve commands no pulse shorter than the log showed to "
-                f"open the valve")
+                f"one found (n windows): {mp_lo * 1e3:.2f}-{mp_hi * 1e3:.2f} ms")
         v_duty, v_ratio = _curve_points(valves.knots_, valves.curves_[i])
         vdict[name]["pwm"] = {"duty": v_duty, "ratio": v_ratio}
     f = friction

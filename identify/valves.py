@@ -196,8 +196,7 @@ class ValveIdentifier(Identifier):
         Open fraction of each valve in each sample used by the final fit (the PWM curves', or
         the exact opening of the timing stage).
     timing_ : tuple of Timing or None
-        Delays and minimum pulse per valve from the timing stage (None: not adopted). The
-        minimum pulse is the top of its range ``min_pulse_range_``.
+        Delays and minimum pulse per valve from the timing stage (None: not adopted).
     min_pulse_range_ : list of (float, float) or None
         Per valve, the minimum pulses the timing stage cannot tell apart
         (:func:`~.valve_timing.min_pulse_range`) [s]; None without the timing stage.
@@ -610,8 +609,9 @@ class ValveIdentifier(Identifier):
                                refit)
         self._phase_costs = found.phase_costs
         self.loop_delay_costs_ = found.loop_delay_costs
-        timings = self._longest_min_pulses(cost_for(found.theta, found.theta[1:8:2].copy()),
-                                           found.timings, found.phase, period)
+        timings = found.timings
+        mp_ranges = self._min_pulse_ranges(cost_for(found.theta, found.theta[1:8:2].copy()),
+                                           timings, found.phase, period)
         ratios = frac(timings, found.phase)[:-1]
         sol = self._least_squares(found.theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
@@ -624,7 +624,7 @@ class ValveIdentifier(Identifier):
                 f"{rss:.3g} vs {rss_avg:.3g} kPa²); the averaged model is kept")
             return None
         self.timing_ = timings
-        self.min_pulse_range_ = self._min_pulse_ranges
+        self.min_pulse_range_ = mp_ranges
         self.phase_ = found.phase
         self.loop_delay_ = found.loop_delay
         self.loop_delay_range_ = found.loop_delay_range
@@ -633,34 +633,29 @@ class ValveIdentifier(Identifier):
                                for t in timings])
         return sol, new_curves, ratios
 
-    def _longest_min_pulses(self, cost: TimingCost, timings: Sequence[Timing], phase: float,
-                            period: float) -> tuple[Timing, ...]:
-        """Each valve's minimum pulse moved to the top of the range the log cannot tell apart
-        (:func:`~.valve_timing.min_pulse_range`; kept in ``_min_pulse_ranges``), with a note
-        where that range is wide.
+    def _min_pulse_ranges(self, cost: TimingCost, timings: Sequence[Timing], phase: float,
+                          period: float) -> list[tuple[float, float]]:
+        """Per valve, the minimum pulses the chamber fit cannot tell from the one found
+        (:func:`~.valve_timing.min_pulse_range`), with a note where that range is wide.
 
-        Within the range every pulse the log holds opens the valve or not alike, so the log
-        says nothing of the pulses between its ends. At the top, the model's PWM curve (and the
-        controller's, which is the model's) steps over them: the controller then commands no
-        pulse shorter than the log showed to open the valve. At the bottom it would count on
-        pulses that may never open it, a dead zone the tune never sees (a closed-loop log whose
-        controller stepped over the dead zone, tuned at the bottom, tracked 3-4 times worse on
-        the true plant than at the top).
+        Inside the range the log does not say whether a pulse opens the valve: model.yaml
+        keeps the minimum pulse found (the PWM curve's dead-zone step, which the controller
+        carries) and writes the range, and ``tune`` draws plants across it, so a controller is
+        scored both where its smallest pulses open the valve and where they do not.
         """
         step = MIN_PULSE_STEP * period
-        out = list(timings)
-        self._min_pulse_ranges = []
+        ranges = []
         for i, tm in enumerate(timings):
             lo, hi = min_pulse_range(cost, timings, phase, i, step)
-            self._min_pulse_ranges.append((lo, hi))
-            out[i] = Timing(tm.delay_on, tm.delay_off, hi)
+            ranges.append((lo, hi))
             if hi - lo > 2.0 * step:
                 self.notes_.append(
-                    f"valve {VALVES[i]}: the log cannot tell a minimum pulse of "
-                    f"{lo * 1e3:.2f} ms from one of {hi * 1e3:.2f} ms (it holds no pulse of a "
-                    f"length between); the model takes {hi * 1e3:.2f} ms, so its PWM curve "
-                    f"commands no pulse shorter than the log showed to open the valve")
-        return tuple(out)
+                    f"valve {VALVES[i]}: the chamber fit cannot tell a minimum pulse of "
+                    f"{lo * 1e3:.2f} ms from one of {hi * 1e3:.2f} ms (the log has few or no "
+                    f"pulses of a length between, or lags blur where they stop opening the "
+                    f"valve); the model keeps {tm.min_pulse * 1e3:.2f} ms and tune draws "
+                    f"plants across the range")
+        return ranges
 
     def _find_onsets(self, theta: np.ndarray, max_delay: float) -> None:
         """``onsets_`` from the fast logs at the averaged model's C and b, and a note."""

@@ -21,7 +21,7 @@ from pneutune.control.logs.reader import read_run_log
 from pneutune.control.physics.pwm import effective_open_fraction
 from pneutune.control.rig.commissioning_run import simulate_commissioning
 from pneutune.control.sim.closed_loop import simulate_scenario
-from pneutune.control.sim.model_box import uncertainty_box
+from pneutune.control.sim.model_box import MIN_PULSE_SPAN, uncertainty_box
 from pneutune.control.sim.scenarios import SCENARIOS
 from pneutune.identify.mass_prior import geometric_mass, mass_prior
 from pneutune.identify.pipeline import identify
@@ -94,15 +94,22 @@ def test_every_range_holds_the_truth_and_says_why(case):
     assert r.model.basis["mass"].startswith("prior from the cylinder geometry")
 
 
-def test_minimum_pulse_range_holds_the_truth_and_the_model_takes_its_top(case):
-    """Each valve's minimum pulse comes with the range the log cannot tell apart, the model
-    takes its top, and the truth lies inside it within 0.05 ms (the scan's step is 0.042 ms at
-    60 Hz; the delays it is scanned at are about 0.03 ms off on these logs)."""
+def test_minimum_pulse_range_holds_the_truth_and_tune_draws_it(case):
+    """Each valve's minimum pulse comes with the range the log cannot tell apart, holding the
+    one found, and the truth lies inside it within 0.05 ms (the scan's step is 0.042 ms at
+    60 Hz; the delays it is scanned at are about 0.03 ms off on these logs). A range wider
+    than MIN_PULSE_SPAN is a coordinate of the box tune draws from."""
     name, plant, r = case
+    box = {c.key: c for c in uncertainty_box(r.model)}
     for i, (v, truth) in enumerate(zip(r.model.valves.ordered(), plant.valves.ordered(),
                                        strict=True)):
         assert v.min_pulse_min is not None and v.min_pulse_max is not None, (name, VALVES[i])
-        assert v.min_pulse == v.min_pulse_max, (name, VALVES[i])
+        assert v.min_pulse_min <= v.min_pulse <= v.min_pulse_max, (name, VALVES[i])
+        key = f"valves.{VALVES[i]}.min_pulse"
+        wide = v.min_pulse_max - v.min_pulse_min > MIN_PULSE_SPAN
+        assert (key in box) == wide, (name, key)
+        if wide:
+            assert (box[key].low, box[key].high) == (v.min_pulse_min, v.min_pulse_max)
         assert v.min_pulse_min - 5e-5 <= truth.min_pulse <= v.min_pulse_max + 5e-5, (
             name, VALVES[i], v.min_pulse_min, v.min_pulse_max)
         assert r.model.basis is not None and f"valves.{VALVES[i]}.min_pulse" in r.model.basis

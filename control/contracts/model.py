@@ -143,8 +143,8 @@ class ModelValve(_Strict):
                              description="Added: shortest command pulse that opens [s]")
     min_pulse_min: float | None = Field(
         None, ge=0.0, le=0.05, description="Added: lower end of the minimum pulses the log "
-        "cannot tell apart [s] (identify takes min_pulse at the upper end); absent: not "
-        "identified from the exact opening per sample")
+        "cannot tell from min_pulse [s], which tune draws from where it is wider than 0.1 ms; "
+        "absent: not identified from the exact opening per sample")
     min_pulse_max: float | None = Field(
         None, ge=0.0, le=0.05, description="Added: upper end of that range [s]")
     pwm: PwmCurve | None = Field(None, description="Added: this valve's own PWM curve "

@@ -16,6 +16,9 @@ friction.v_s, alpha       ``friction.ranges``
 disturbance.F_n           θ box [θ2_min, θ2_max]
 disturbance.D_a, D_b      θ box [θ5_min, θ5_max], [θ6_min, θ6_max]
 valves.<v>.C, .b          [C_min, C_max], [b_min, b_max] per valve
+valves.<v>.min_pulse      [min_pulse_min, min_pulse_max] where the model gives that range and
+                          it is wider than :data:`MIN_PULSE_SPAN`; the slow corner has the
+                          longest
 ``effects`` keys          the model's ``effects.<key>.range`` (IO delay, sensor lags, valve
                           armature lags), where it is not a single value; the slow corner has
                           the most lag
@@ -44,6 +47,10 @@ from pneutune.control.constants import VALVES
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.contracts.yamlio import validate_model
+
+#: Narrowest minimum-pulse range drawn [s]: identify scans the minimum pulse in steps of 1/400
+#: of a PWM period (0.042 ms at 60 Hz), so a narrower range is a point at its resolution.
+MIN_PULSE_SPAN = 1.0e-4
 
 
 @dataclass(frozen=True)
@@ -117,6 +124,10 @@ def uncertainty_box(model: ModelConfig,
     for name, v in zip(VALVES, model.valves.ordered(), strict=True):
         coords.append(Coordinate(f"valves.{name}.C", v.C_min, v.C_max, v.C, "low"))
         coords.append(Coordinate(f"valves.{name}.b", v.b_min, v.b_max, v.b, "high"))
+        if (v.min_pulse_min is not None and v.min_pulse_max is not None
+                and v.min_pulse_max - v.min_pulse_min > MIN_PULSE_SPAN):
+            coords.append(Coordinate(f"valves.{name}.min_pulse", v.min_pulse_min,
+                                     v.min_pulse_max, v.min_pulse, "high"))
     for key, eff in sorted((model.effects or {}).items()):
         if eff.range[1] > eff.range[0]:  # a lag or delay: the slow corner has the most of it
             coords.append(Coordinate(key, eff.range[0], eff.range[1], eff.nominal, "high"))
@@ -252,4 +263,5 @@ def corner(coords: tuple[Coordinate, ...], slow: bool) -> dict[str, float]:
     return out
 
 
-__all__ = ["Coordinate", "corner", "nominal_plant", "plant_from_values", "uncertainty_box"]
+__all__ = ["MIN_PULSE_SPAN", "Coordinate", "corner", "nominal_plant", "plant_from_values",
+           "uncertainty_box"]
