@@ -235,11 +235,13 @@ def write_report(r: IdentifyResult, folder: str | os.PathLike[str]) -> Path:
               f"per second).", "",
               "## Valves (ISO 6358, Eq. 7)", "",
               "| valve | C [m^3/(s Pa)] | C range | b | b range | delay_on | delay_off | "
-              "min_pulse |", "|---|---:|---|---:|---|---:|---:|---:|"]
+              "min_pulse | min_pulse range |", "|---|---:|---|---:|---|---:|---:|---:|---|"]
     for name, v in zip(VALVES, m.valves.ordered(), strict=True):
+        mp_range = ("-" if v.min_pulse_min is None or v.min_pulse_max is None
+                    else f"[{v.min_pulse_min * 1e3:.2f}, {v.min_pulse_max * 1e3:.2f}] ms")
         lines.append(f"| {name} | {v.C:.5g} | [{v.C_min:.4g}, {v.C_max:.4g}] | {v.b:.4f} | "
                      f"[{v.b_min:.3f}, {v.b_max:.3f}] | {v.delay_on * 1e3:.2f} ms | "
-                     f"{v.delay_off * 1e3:.2f} ms | {v.min_pulse * 1e3:.2f} ms |")
+                     f"{v.delay_off * 1e3:.2f} ms | {v.min_pulse * 1e3:.2f} ms | {mp_range} |")
     v = r.valves
     if v.timing_ is not None:
         timing = (f"Delays and minimum pulses from the exact opening of every valve in every "
