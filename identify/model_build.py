@@ -217,9 +217,8 @@ def build_model(data: Dataset, logs: Dataset | Sequence[Dataset], valves: ValveI
                        "C_max": c_hi, "b_min": b_lo, "b_max": b_hi,
                        "delay_on": sw["delay_on"], "delay_off": sw["delay_off"],
                        "min_pulse": sw["min_pulse"]}
-        mp_range = getattr(valves, "min_pulse_range_", None)
-        if valves.timing_ is not None and mp_range is not None:
-            mp_lo, mp_hi = mp_range[i]
+        if valves.min_pulse_range_ is not None:  # set with the timing stage
+            mp_lo, mp_hi = valves.min_pulse_range_[i]
             vdict[name]["min_pulse_min"], vdict[name]["min_pulse_max"] = mp_lo, mp_hi
             basis[f"valves.{name}.min_pulse"] = (
                 f"data: the minimum pulses whose chamber fit is within 1 + {Z:g}^2/n of the "

@@ -47,6 +47,7 @@ from threadpoolctl import threadpool_limits
 
 from pneutune.control.constants import VALVES
 from pneutune.control.physics.pwm import effective_open_fraction
+from pneutune.control.sim.model_box import MIN_PULSE_SPAN
 
 from .base import Identifier
 from .dataset import Dataset, IdentificationError
@@ -609,34 +610,33 @@ class ValveIdentifier(Identifier):
                                refit)
         self._phase_costs = found.phase_costs
         self.loop_delay_costs_ = found.loop_delay_costs
-        timings = found.timings
-        mp_ranges = self._min_pulse_ranges(cost_for(found.theta, found.theta[1:8:2].copy()),
-                                           timings, found.phase, period)
-        ratios = frac(timings, found.phase)[:-1]
+        ratios = frac(found.timings, found.phase)[:-1]
         sol = self._least_squares(found.theta, lo, hi, ratios, wt)
         rss = float(np.sum(sol.fun**2))
         self.timing_rss_ = (rss, rss_avg)
-        self.timing_tried_ = (timings, found.phase)
+        self.timing_tried_ = (found.timings, found.phase)
         if not rss < rss_avg:
             self.notes_.append(
                 f"valves: the exact valve opening per sample (timings searched) fits the "
                 f"chamber pressures no better than the averaged PWM curve (residual "
                 f"{rss:.3g} vs {rss_avg:.3g} kPa²); the averaged model is kept")
             return None
-        self.timing_ = timings
-        self.min_pulse_range_ = mp_ranges
+        self.timing_ = found.timings
+        self.min_pulse_range_ = self._min_pulse_ranges(
+            cost_for(found.theta, found.theta[1:8:2].copy()), found.timings, found.phase, period)
         self.phase_ = found.phase
         self.loop_delay_ = found.loop_delay
         self.loop_delay_range_ = found.loop_delay_range
         new_curves = np.array([effective_open_fraction(self.knots_, period, t.delay_on,
                                                        t.delay_off, t.min_pulse)
-                               for t in timings])
+                               for t in found.timings])
         return sol, new_curves, ratios
 
     def _min_pulse_ranges(self, cost: TimingCost, timings: Sequence[Timing], phase: float,
                           period: float) -> list[tuple[float, float]]:
         """Per valve, the minimum pulses the chamber fit cannot tell from the one found
-        (:func:`~.valve_timing.min_pulse_range`), with a note where that range is wide.
+        (:func:`~.valve_timing.min_pulse_range`), with a note where that range is wide enough
+        for tune to draw (:data:`~pneutune.control.sim.model_box.MIN_PULSE_SPAN`).
 
         Inside the range the log does not say whether a pulse opens the valve: model.yaml
         keeps the minimum pulse found (the PWM curve's dead-zone step, which the controller
@@ -648,7 +648,7 @@ class ValveIdentifier(Identifier):
         for i, tm in enumerate(timings):
             lo, hi = min_pulse_range(cost, timings, phase, i, step)
             ranges.append((lo, hi))
-            if hi - lo > 2.0 * step:
+            if hi - lo > MIN_PULSE_SPAN:
                 self.notes_.append(
                     f"valve {VALVES[i]}: the chamber fit cannot tell a minimum pulse of "
                     f"{lo * 1e3:.2f} ms from one of {hi * 1e3:.2f} ms (the log has few or no "
