@@ -2,6 +2,10 @@
 
 The loop delay: a closed-loop log of a rig whose duties act 2 ms after their samples.
 
+The valves' b: the identification run of the paper's rig with every real-rig effect at its
+typical magnitude (lines in series with the valves, armature and transmitter lags among them),
+whose full-opening charges and vents follow ISO 6358's curve for no b.
+
 The log is the 0.5 ms identification run of the paper's rig with a 2 ms pressure-transmitter
 lag (``sensors.p_lag``), typical of an industrial transmitter (10-90 % response of a few ms).
 The lag puts the measured pressure force several times further behind the motion than the
@@ -20,6 +24,7 @@ import pytest
 from pneutune.control.contracts.controller import load_controller
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.rig.identification_run import simulate_identification
+from pneutune.control.sim import rig_effects
 from pneutune.control.sim.closed_loop import simulate_scenario
 from pneutune.control.sim.scenarios import SCENARIOS
 from pneutune.identify.pipeline import identify
@@ -75,3 +80,22 @@ def test_a_closed_loop_log_gives_the_loop_delay_of_a_rig_with_an_io_delay(tmp_pa
     # and it says something: narrower than a PWM period's tenth either side (1.7 ms)
     assert hi - lo < 0.2 / plant.rig.pwm_hz
     assert model.effects is not None and "io.delay" in model.effects
+
+
+@pytest.mark.slow
+def test_b_at_its_bound_on_a_rig_with_lines_gets_a_true_note(tmp_path: Path) -> None:
+    """Every valve was held fully open for 1.5-8 s, yet the line in series bends its charges and
+    vents so that the fit puts b at its bound 0 (measured: about 1e-13 on all four). The note
+    must say that, and must not ask for the charges and vents this log already has."""
+    plant = PlantConfig().with_updates(rig_effects.plant_updates(rig_effects.typical()))
+    rec = simulate_identification(plant, seed=1)
+    path = tmp_path / "effects.mcap"
+    rec.save(path, rig=plant.rig_metadata(), run={"seed": "1", "experiment": "identification"})
+    res = identify(path, seed=0)
+    pinned = [n for n in res.notes if "put b at its bound" in n]
+    assert len(pinned) == 4, res.notes
+    assert not [n for n in res.notes if "needs charges or vents" in n], res.notes
+    for name in ("a_in", "a_out", "b_in", "b_out"):
+        v = getattr(res.model.valves, name)
+        assert v.b < 1e-3 and v.b_min == 0.0, (name, v.b_min, v.b, v.b_max)
+        assert any(n.startswith(f"valve {name}: the fit put b at its bound") for n in pinned)
