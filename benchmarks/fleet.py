@@ -28,7 +28,9 @@ those whose index is 0 or 3 modulo 4 (so both PWM modes have some), at magnitude
 the published ranges with the seed ``[seed, index, 24]``. The share, the ranges and the seed
 were fixed before any measurement. ``--no-effects`` runs the same plants without them. The
 second table compares, per plant, the tune from the identification run (``a``) with the tune
-from a closed-loop log (``c``, else ``e``): mean E_p and E_rms over the Table-1 scenarios.
+from a closed-loop log (``c``, else ``e``): mean E_p and E_rms over the Table-1 scenarios, and
+the tune's own figure on the true plant (:func:`tune_figure`), which weighs the two as the tune
+does.
 
     .venv/bin/python benchmarks/fleet.py [--plants 12] [--kinds a,b,c,d] [--trials 60]
         [--only 0,3] [--out reports/fleet] [--json] [--no-effects]
@@ -69,6 +71,7 @@ from pneutune.control.sim.scenarios import (
     smooth_square,
 )
 from pneutune.control.sim.truth import model_from_plant
+from pneutune.tune.objective import reference_figures
 from pneutune.tune.report import FLOW_LIMITED  # the share of the window report.md flags
 
 KINDS = {
@@ -387,13 +390,26 @@ def _table1_means(r: Row) -> tuple[float, float, float, float] | None:
             float(np.mean([r.e_rms[s][1] for s in names])))
 
 
+def tune_figure(r: Row) -> float | None:
+    """The tracking part of the tune's objective on the true plant: the mean over the scored
+    scenarios of 0.5 (E_p / E_p,ref + E_rms / E_rms,ref), references from Table 1
+    (:func:`~pneutune.tune.objective.reference_figures`); None without scores."""
+    if not r.e_p or not r.e_rms:
+        return None
+    return float(np.mean([0.5 * (r.e_p[s][0] / reference_figures(SCENARIOS[s])[0]
+                                 + r.e_rms[s][0] / reference_figures(SCENARIOS[s])[1])
+                          for s in r.e_p]))
+
+
 def comparison(rows: list[Row]) -> str:
     """Per plant: the tune from the identification run (a) against the tune from a closed-loop
-    log (c, else e), mean E_p / E_rms over the Table-1 scenarios on the true plant [mm]."""
+    log (c, else e), mean E_p / E_rms over the Table-1 scenarios on the true plant [mm], and
+    the tune's figure (:func:`tune_figure`) of each."""
     by = {(r.plant, r.kind): r for r in rows}
     plants = sorted({r.plant for r in rows})
     lines = ["| plant | effects | paper's gains E_p / E_rms | identification-run tune (a) | "
-             "closed-loop-log tune | a at least as good |", "|---|---|---|---|---|---|"]
+             "closed-loop-log tune | a at least as good | tune's figure a / other |",
+             "|---|---|---|---|---|---|---|"]
     wins = []
     for i in plants:
         a = by.get((i, "a"))
@@ -412,8 +428,10 @@ def comparison(rows: list[Row]) -> str:
             ok = ma[0] <= mc[0] and ma[1] <= mc[1]
             wins.append(ok)
             better = "yes" if ok else "no"
+        figures = [tune_figure(x) if x else None for x in (a, c)]
+        cell_f = " / ".join("-" if f is None else f"{f:.3f}" for f in figures)
         lines.append(f"| {i} | {fx} | {ref[2]:.3f} / {ref[3]:.3f} | {cell_a} | {cell_c} | "
-                     f"{better} |")
+                     f"{better} | {cell_f} |")
     if wins:
         pairs = [(_table1_means(by[(i, "a")]), _table1_means(by.get((i, "c")) or by[(i, "e")]))
                  for i in plants if (i, "a") in by and ((i, "c") in by or (i, "e") in by)]
@@ -425,6 +443,12 @@ def comparison(rows: list[Row]) -> str:
                          f"{np.mean([x[1] for x, _ in pairs]):.3f} mm; closed-loop-log tune "
                          f"E_p {np.mean([y[0] for _, y in pairs]):.3f} / E_rms "
                          f"{np.mean([y[1] for _, y in pairs]):.3f} mm")
+            figs = [(tune_figure(by[(i, "a")]), tune_figure(by.get((i, "c")) or by[(i, "e")]))
+                    for i in plants if (i, "a") in by and ((i, "c") in by or (i, "e") in by)]
+            figs = [(x, y) for x, y in figs if x is not None and y is not None]
+            if figs:
+                lines[-1] += (f"; the tune's figure {np.mean([x for x, _ in figs]):.3f} against "
+                              f"{np.mean([y for _, y in figs]):.3f} (lower is better)")
     return "\n".join(lines)
 
 

@@ -39,3 +39,31 @@ def test_fleet_subset_beats_the_paper_on_the_true_plant(tmp_path: Path) -> None:
             assert tuned < paper, (r["kind"], scenario, tuned, paper)
         assert r["passed"], r
     assert proc.returncode == 0, proc.stderr
+
+
+def test_tune_figure_is_one_at_table_1_and_weighs_e_p_and_e_rms_alike() -> None:
+    """The comparison's figure is the tune's tracking cost on the true plant: 1.0 for a
+    controller tracking exactly as the paper's rig did (Table 1, the disturbance scenario
+    normalised by the 0.5 Hz sine's figures), and doubling E_p alone or E_rms alone raises it
+    by the same 0.5."""
+    sys.path.insert(0, str(FLEET.parent))
+    try:
+        import fleet
+    finally:
+        sys.path.remove(str(FLEET.parent))
+    from pneutune.control.sim.scenarios import SCENARIOS
+    from pneutune.tune.objective import reference_figures
+
+    names = list(fleet.SCORED)
+    refs = {s: reference_figures(SCENARIOS[s]) for s in names}
+    assert refs["sine-0.5hz"] == pytest.approx((0.42, 0.19))  # Table 1, first row
+
+    def row(scale_p: float, scale_rms: float) -> object:
+        return fleet.Row(0, "a", "immediate",
+                         e_p={s: (scale_p * refs[s][0], 1.0) for s in names},
+                         e_rms={s: (scale_rms * refs[s][1], 1.0) for s in names})
+
+    assert fleet.tune_figure(row(1.0, 1.0)) == pytest.approx(1.0, rel=1e-12)
+    assert fleet.tune_figure(row(2.0, 1.0)) == pytest.approx(1.5, rel=1e-12)
+    assert fleet.tune_figure(row(1.0, 2.0)) == pytest.approx(1.5, rel=1e-12)
+    assert fleet.tune_figure(fleet.Row(0, "a", "immediate")) is None
