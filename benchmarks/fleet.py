@@ -396,9 +396,11 @@ def tune_figure(r: Row) -> float | None:
     (:func:`~pneutune.tune.objective.reference_figures`); None without scores."""
     if not r.e_p or not r.e_rms:
         return None
-    return float(np.mean([0.5 * (r.e_p[s][0] / reference_figures(SCENARIOS[s])[0]
-                                 + r.e_rms[s][0] / reference_figures(SCENARIOS[s])[1])
-                          for s in r.e_p]))
+    terms = []
+    for s in r.e_p:
+        ref_p, ref_rms = reference_figures(SCENARIOS[s])
+        terms.append(0.5 * (r.e_p[s][0] / ref_p + r.e_rms[s][0] / ref_rms))
+    return float(np.mean(terms))
 
 
 def comparison(rows: list[Row]) -> str:
@@ -411,6 +413,7 @@ def comparison(rows: list[Row]) -> str:
              "closed-loop-log tune | a at least as good | tune's figure a / other |",
              "|---|---|---|---|---|---|---|"]
     wins = []
+    figs: list[tuple[float, float]] = []
     for i in plants:
         a = by.get((i, "a"))
         c = by.get((i, "c")) or by.get((i, "e"))
@@ -428,8 +431,10 @@ def comparison(rows: list[Row]) -> str:
             ok = ma[0] <= mc[0] and ma[1] <= mc[1]
             wins.append(ok)
             better = "yes" if ok else "no"
-        figures = [tune_figure(x) if x else None for x in (a, c)]
-        cell_f = " / ".join("-" if f is None else f"{f:.3f}" for f in figures)
+        fa, fc = (tune_figure(x) if x else None for x in (a, c))
+        if fa is not None and fc is not None:
+            figs.append((fa, fc))
+        cell_f = " / ".join("-" if f is None else f"{f:.3f}" for f in (fa, fc))
         lines.append(f"| {i} | {fx} | {ref[2]:.3f} / {ref[3]:.3f} | {cell_a} | {cell_c} | "
                      f"{better} | {cell_f} |")
     if wins:
@@ -443,9 +448,6 @@ def comparison(rows: list[Row]) -> str:
                          f"{np.mean([x[1] for x, _ in pairs]):.3f} mm; closed-loop-log tune "
                          f"E_p {np.mean([y[0] for _, y in pairs]):.3f} / E_rms "
                          f"{np.mean([y[1] for _, y in pairs]):.3f} mm")
-            figs = [(tune_figure(by[(i, "a")]), tune_figure(by.get((i, "c")) or by[(i, "e")]))
-                    for i in plants if (i, "a") in by and ((i, "c") in by or (i, "e") in by)]
-            figs = [(x, y) for x, y in figs if x is not None and y is not None]
             if figs:
                 lines[-1] += (f"; the tune's figure {np.mean([x for x, _ in figs]):.3f} against "
                               f"{np.mean([y for _, y in figs]):.3f} (lower is better)")

@@ -193,8 +193,6 @@ class ValveIdentifier(Identifier):
     full_open_s_ : ndarray (4,)
         Longest stretch of consecutive fitted samples each valve was commanded duty 1 [s]
         (compared with :data:`FULL_OPEN_PIN_S`).
-    b_at_bound_ : ndarray (4,) of bool
-        Whether the fit put each valve's b at a bound of its search.
     ratios_ : ndarray (N-1, 4)
         Open fraction of each valve in each sample used by the final fit (the PWM curves', or
         the exact opening of the timing stage).
@@ -564,10 +562,9 @@ class ValveIdentifier(Identifier):
                     f"error; its bound is widened to cover zero")
         self.C_std_ = sd[0:8:2] * _C_UNIT
         self.b_std_ = sd[1:8:2]
-        self.b_at_bound_ = np.array([bool(self.b_[i] < 1e-3 or self.b_[i] > lo[1] + hi[1] - 1e-3)
-                                     for i in range(len(VALVES))])
         for i, name in enumerate(VALVES):
-            if self.b_at_bound_[i] and self.full_open_s_[i] >= FULL_OPEN_PIN_S:
+            at_bound = self.b_[i] < 1e-3 or self.b_[i] > lo[1] + hi[1] - 1e-3
+            if at_bound and self.full_open_s_[i] >= FULL_OPEN_PIN_S:
                 self.notes_.append(
                     f"valve {name}: the fit put b at its bound ({self.b_[i]:.3g}) although the "
                     f"valve was held fully open for {self.full_open_s_[i]:.2g} s: those charges "
@@ -575,7 +572,7 @@ class ValveIdentifier(Identifier):
                     f"filter in series with the valve, or a lagging pressure transmitter, bends "
                     f"them; model.yaml keeps the fitted C and b, which then describe the valve "
                     f"and what is in series with it together")
-            elif self.b_at_bound_[i] or self.b_std_[i] > 0.1:
+            elif at_bound or self.b_std_[i] > 0.1:
                 self.notes_.append(
                     f"valve {name}: b is not identifiable from this log (estimate "
                     f"{self.b_[i]:.3g} ± {self.b_std_[i]:.2g}); it needs charges or vents "

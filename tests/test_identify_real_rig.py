@@ -2,16 +2,16 @@
 
 The loop delay: a closed-loop log of a rig whose duties act 2 ms after their samples.
 
-The valves' b: the identification run of the paper's rig with every real-rig effect at its
-typical magnitude (lines in series with the valves, armature and transmitter lags among them),
-whose full-opening charges and vents follow ISO 6358's curve for no b.
-
 The log is the 0.5 ms identification run of the paper's rig with a 2 ms pressure-transmitter
 lag (``sensors.p_lag``), typical of an industrial transmitter (10-90 % response of a few ms).
 The lag puts the measured pressure force several times further behind the motion than the
 0.3 ms lag that carries the mass, so no mass estimate is usable and the prior must stand; the
 notes must say so without printing an impossible interval, and must not advise a faster
 sampling than the log already has.
+
+The valves' b: the identification run of the paper's rig with every real-rig effect at its
+typical magnitude (lines in series with the valves, armature and transmitter lags among them),
+whose full-opening charges and vents follow ISO 6358's curve for no b.
 """
 
 from __future__ import annotations
