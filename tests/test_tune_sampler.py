@@ -31,6 +31,19 @@ def test_the_default_sampler_stays_tpe() -> None:
     assert default_study_name("ab" * 32, 3, sampler="cmaes") == f"tune-{'ab' * 6}-seed3-cmaes"
 
 
+def test_the_default_tpe_samples_the_parameters_jointly() -> None:
+    """The default TPE is multivariate whatever Optuna's own default (True from Optuna 5,
+    False before): after its start-up trials it proposes every parameter from one joint
+    density, so the relative search space it infers holds both parameters of this study."""
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(sampler=samplers.make_sampler("tpe", 3))
+    study.optimize(lambda t: (t.suggest_float("x", 1e-3, 1.0, log=True) - 0.1) ** 2
+                   + t.suggest_float("y", 0.0, 1.0) ** 2,
+                   n_trials=samplers.N_STARTUP_TRIALS + 1)
+    space = study.sampler.infer_relative_search_space(study, study.trials[-1])
+    assert sorted(space) == ["x", "y"]
+
+
 def test_cmaes_continues_a_tpe_warm_start(tmp_path: Path,
                                           monkeypatch: pytest.MonkeyPatch) -> None:
     """With a warm start of 10 complete trials: the trials up to the 10th complete one are

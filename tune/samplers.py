@@ -78,8 +78,13 @@ def check_sampler(name: str, library: bool = True) -> None:
 
 def tpe(seed: int) -> optuna.samplers.TPESampler:
     """The default sampler (module docstring)."""
-    return optuna.samplers.TPESampler(seed=seed, n_startup_trials=N_STARTUP_TRIALS,
-                                      constant_liar=True)
+    # multivariate is Optuna 5's default for one objective and False before it: set it, so that
+    # a seed gives the same study under every Optuna the package accepts (Optuna 4 warns that
+    # the option is experimental)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.samplers.TPESampler(seed=seed, n_startup_trials=N_STARTUP_TRIALS,
+                                          multivariate=True, constant_liar=True)
 
 
 class TpeThenCmaEsSampler(BaseSampler):
