@@ -78,6 +78,10 @@ def closed_stretches(u: np.ndarray, usable: np.ndarray, lookback: int, window: i
             A = np.column_stack([tt - tt.mean(), np.ones_like(tt)])
             coef, *_ = np.linalg.lstsq(A, yy, rcond=None)
             s2 = float(np.sum((yy - A @ coef) ** 2)) / max(1, len(tt) - 2)
+            # a stretch that fits exactly (a noise-free log, a pressure held within one
+            # quantum) has no residual; its variance is then that of the data's rounding, not
+            # zero, so that its weight stays finite
+            s2 = max(s2, (np.finfo(float).eps * float(np.max(np.abs(yy)))) ** 2)
             row = [0.0, 0.0, float(np.mean(leak_rate[a:b])) * LEAK_SCALE]
             row[ch] = 1.0
             rows.append(row)
@@ -103,7 +107,13 @@ def closed_stretches(u: np.ndarray, usable: np.ndarray, lookback: int, window: i
         sol, *_ = np.linalg.lstsq(Aw, y * wts, rcond=None)
     dof = max(1, len(y) - len(cols))
     chi2 = float(np.sum((Aw @ sol - y * wts) ** 2)) / dof
-    cov = np.linalg.pinv(Aw.T @ Aw) * max(1.0, chi2)
+    # columns scaled to unit norm before the pseudo-inverse: the weights of an exact stretch
+    # and a noisy one can differ by many decades, and pinv's cut-off (relative to the largest
+    # singular value) would otherwise drop the noisy chamber's column and report its error as 0
+    norm = np.linalg.norm(Aw, axis=0)
+    scale = np.where(norm > 0.0, 1.0 / np.where(norm > 0.0, norm, 1.0), 1.0)
+    As = Aw * scale
+    cov = scale[:, None] * np.linalg.pinv(As.T @ As) * scale[None, :] * max(1.0, chi2)
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     for j, c in enumerate(cols):
         if c < 2:
