@@ -111,9 +111,9 @@ def closed_stretches(u: np.ndarray, usable: np.ndarray, lookback: int, window: i
     # and a noisy one can differ by many decades, and pinv's cut-off (relative to the largest
     # singular value) would otherwise drop the noisy chamber's column and report its error as 0
     norm = np.linalg.norm(Aw, axis=0)
-    scale = np.where(norm > 0.0, 1.0 / np.where(norm > 0.0, norm, 1.0), 1.0)
-    As = Aw * scale
-    cov = scale[:, None] * np.linalg.pinv(As.T @ As) * scale[None, :] * max(1.0, chi2)
+    norm[norm == 0.0] = 1.0
+    As = Aw / norm
+    cov = np.linalg.pinv(As.T @ As) / np.outer(norm, norm) * max(1.0, chi2)
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     for j, c in enumerate(cols):
         if c < 2:
