@@ -165,9 +165,16 @@ def plant_updates(m: Mapping[str, float]) -> dict[str, Any]:
     return _round_tree(upd, DERIVED_SIGNIFICANT)
 
 
-def build_plant(m: Mapping[str, float]) -> PlantConfig:
-    """The paper's plant (the default :class:`PlantConfig`) with the magnitudes ``m``."""
-    return PlantConfig().with_updates(plant_updates(m))
+def build_plant(m: Mapping[str, float], pwm_update: str = "immediate") -> PlantConfig:
+    """The paper's plant (the default :class:`PlantConfig`) with the magnitudes ``m``.
+
+    ``pwm_update`` is the plant's ``rig.pwm_update``: how the PWM board takes a new duty (the
+    paper's board updates the four duties "synchronously", which does not say which).
+    """
+    upd = plant_updates(m)
+    if pwm_update != "immediate":
+        upd["rig"] = {"pwm_update": pwm_update}
+    return PlantConfig().with_updates(upd)
 
 
 def table1(plant: PlantConfig, seeds: list[int]) -> dict[str, np.ndarray]:
@@ -256,8 +263,8 @@ def report(res: Mapping[str, np.ndarray], tolerance: float) -> bool:
 
 
 def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] | None = None,
-           timeout: float | None = None, log: Path | None = None
-           ) -> tuple[list[tuple[dict[str, float], float]], int]:
+           timeout: float | None = None, log: Path | None = None,
+           pwm_update: str = "immediate") -> tuple[list[tuple[dict[str, float], float]], int]:
     """Seeded TPE search of the magnitudes, each rounded before its plant is built.
 
     Parameters
@@ -274,6 +281,8 @@ def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] 
         Stop starting trials after this many seconds.
     log : Path, optional
         Append each trial's magnitudes and worst difference to this file, a JSON line each.
+    pwm_update : str
+        The plants' ``rig.pwm_update``.
 
     Returns
     -------
@@ -297,7 +306,7 @@ def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] 
         # rounding may step just outside a range: back to its bound
         m = {k: min(max(v, space[k][0]), space[k][1]) for k, v in m.items()}
         trial.set_user_attr("m", m)
-        worst = worst_difference(table1(build_plant(m), seeds))
+        worst = worst_difference(table1(build_plant(m, pwm_update), seeds))
         if worst < best[0]:
             best[:] = [worst, trial.number]
         if log is not None:
@@ -395,6 +404,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="append every search trial's magnitudes and worst difference here")
     ap.add_argument("--start", type=Path, metavar="PARAMS.json",
                     help="--search starts from these magnitudes (an earlier search's)")
+    ap.add_argument("--pwm-update", choices=("immediate", "latched"), default="immediate",
+                    help="the searched plants' rig.pwm_update (default immediate)")
     args = ap.parse_args(argv)
     if args.search:
         if args.out is None:
@@ -402,14 +413,14 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         start = json.loads(args.start.read_text()) if args.start else None
         found, n_run = search(args.search, args.seeds, args.search_seed, start,
-                              args.search_timeout, args.trials_log)
+                              args.search_timeout, args.trials_log, args.pwm_update)
         print(f"search: {n_run} trials, {len(found)} distinct plants in "
               f"{time.perf_counter() - t0:.0f} s; checking the best "
               f"{min(args.check_top, len(found))} on seeds "
               f"{' '.join(map(str, args.check_seeds))}", flush=True)
         checked = []
         for i, (m, worst) in enumerate(found[:args.check_top]):
-            check = worst_difference(table1(build_plant(m), args.check_seeds))
+            check = worst_difference(table1(build_plant(m, args.pwm_update), args.check_seeds))
             checked.append((max(worst, check), i, m))
             print(f"  #{i:2d}: seeds {' '.join(map(str, args.seeds))} {worst:6.1%}, seeds "
                   f"{' '.join(map(str, args.check_seeds))} {check:6.1%}", flush=True)
@@ -418,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({time.perf_counter() - t0:.0f} s in all)")
         for k, v in best.items():
             print(f"  {k} = {v:.3g}")
-        plant = build_plant(best)
+        plant = build_plant(best, args.pwm_update)
         tables = {}
         for seeds in (args.seeds, args.check_seeds):
             tables[" ".join(map(str, seeds))] = table_lines(table1(plant, seeds),
@@ -428,6 +439,8 @@ def main(argv: list[str] | None = None) -> int:
                     "--seeds", *map(str, args.seeds), "--check-seeds",
                     *map(str, args.check_seeds), "--check-top", str(args.check_top)]
         cmd_args += ["--start", str(args.start)] if args.start else []
+        if args.pwm_update != "immediate":
+            cmd_args += ["--pwm-update", args.pwm_update]
         cmd_args += ["--out", str(args.out)]
         command = "nice -n 10 .venv/bin/python benchmarks/paper_rig.py " + shlex.join(cmd_args)
         header = header_text(best, command, tables)
