@@ -382,6 +382,7 @@ def test_same_seed_same_best_trial(tmp_path: Path, capsys: pytest.CaptureFixture
     (["--model", "{model}", "--trials", "0"], "--trials must be >= 1, got 0"),
     (["--model", "{model}", "--trials", "3", "--workers", "0"], "--workers must be >= 1"),
     (["--model", "{model}", "--trials", "3", "--jobs", "0"], "--jobs must be >= 1"),
+    (["--model", "{model}", "--trials", "3", "--restarts", "0"], "--restarts must be >= 1"),
     (["--model", "{model}", "--trials", "3", "--storage", "redis://localhost/0"],
      "unknown scheme 'redis'"),
     (["--model", "{model}", "--trials", "3", "--scenarios", "sine-9hz"], "unknown scenario"),
@@ -476,3 +477,22 @@ def test_report_tells_the_valves_limit_from_chattering_gains() -> None:
                          paper1) is None
     assert valve_verdict({"E_p_mm": 1.0, "full_open": float("nan"),
                           "flow_limited": float("nan")}, paper1) is None
+
+
+def test_restarts_with_a_named_study(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--restarts 2 --study axis: the studies are axis (seed 1) and axis-seed2 (seed 2) in one
+    journal; --json lists both with their selection scores and marks one kept."""
+    import optuna
+
+    from pneutune.tune.storage import open_storage
+
+    model = write_truth_model(tmp_path)
+    code, stdout, _ = _run(["--model", str(model), "--trials", "2", "--out", str(tmp_path / "o"),
+                            "--study", "axis", "--restarts", "2", "--json", *QUICK], capsys)
+    assert code == 0
+    rows = json.loads(stdout)["restarts"]
+    assert [(r["seed"], r["study"]) for r in rows] == [(1, "axis"), (2, "axis-seed2")]
+    assert sum(r["kept"] for r in rows) == 1
+    assert all(r["score"] is not None and r["score"] > 0 for r in rows)
+    names = optuna.get_all_study_names(open_storage(str(tmp_path / "o" / "study.journal")))
+    assert sorted(names) == ["axis", "axis-seed2"]

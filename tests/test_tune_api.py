@@ -25,6 +25,7 @@ QUICK = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=4.0)
     ("workers", 0, "workers must be >= 1, got 0"),
     ("seed", -1, "seed must be >= 0, got -1"),
     ("jobs", 0, "jobs must be >= 1, got 0"),
+    ("restarts", 0, "restarts must be >= 1, got 0"),
 ])
 def test_settings_are_validated_in_the_library(field: str, value: int, message: str) -> None:
     """The library refuses what the command refuses; its message names the argument, and the
@@ -115,3 +116,89 @@ def test_a_tuned_controller_worse_than_the_papers_is_said(tuned: float, paper: f
         return
     assert line is not None and line.startswith("warning: trial #58 scores 5.75")
     assert "(4.91)" in line and "--trials" in line and "--seed" in line
+
+
+def test_restarts_keep_the_study_that_scores_best_on_the_selection_draws(tmp_path: Path) -> None:
+    """restarts=2: two studies (seeds 3 and 4, names apart), each guarded best scored on the
+    selection draws; the kept one has the lowest score, recomputed here from its trial's
+    parameters on :func:`selection_objectives` (to 1e-12), and controller.yaml is its trial.
+    The same call again resumes both studies and runs no trial."""
+    import optuna
+
+    from pneutune.tune.restarts import SELECTION_SEED_OFFSET, selection_objectives
+    from pneutune.tune.space import controller_from_params
+    from pneutune.tune.storage import DEFAULT_JOURNAL, open_storage
+
+    model = model_from_plant(PlantConfig())
+    settings = TuneSettings(trials=3, out=tmp_path, jobs=1, seed=3, restarts=2, objective=QUICK)
+    result = tune(model, settings)
+    rows = result.summary()["restarts"]
+    assert [r["seed"] for r in rows] == [3, 4]
+    assert rows[0]["study"] != rows[1]["study"]
+    objectives = selection_objectives(model, 3, QUICK, jobs=1)
+    assert [o.seed for o in objectives] == [3 + SELECTION_SEED_OFFSET, 4 + SELECTION_SEED_OFFSET]
+    scores = []
+    for r in rows:
+        study = optuna.load_study(study_name=r["study"],
+                                  storage=open_storage(str(tmp_path / DEFAULT_JOURNAL)))
+        params = study.trials[r["trial"]].params
+        ctl = controller_from_params(model, params)
+        scores.append(sum(o.evaluate(ctl).value for o in objectives) / len(objectives))
+        assert r["score"] == pytest.approx(scores[-1], rel=1e-12)
+    kept = min(range(2), key=lambda i: (scores[i], i))
+    assert [r["kept"] for r in rows] == [i == kept for i in range(2)]
+    assert result.summary()["seed"] == rows[kept]["seed"]
+    assert result.best.number == rows[kept]["trial"]
+    assert result.study.study_name == rows[kept]["study"]
+    assert "## Restarts" in Path(result.paths["report"]).read_text()
+    assert any("best of 2 restarts" in n for n in result.controller.provenance.notes)
+    again = tune(model, settings)
+    assert again.summary()["trials"]["this_run"] == 0
+    assert again.summary()["restarts"] == rows
+
+
+def test_restarts_rank_by_failed_runs_then_score() -> None:
+    """The candidate with the fewest failed runs is kept even with a higher score; among equals
+    the lowest score; a failed run's cost is left out of its scenario's CVaR (α = 0.5 over the
+    two completed costs 1.0 and 3.0 of a three-draw scenario: 3.0)."""
+    from types import SimpleNamespace
+
+    from pneutune.tune.restarts import Candidate, select
+
+    def run(cost: float | None) -> SimpleNamespace:
+        return SimpleNamespace(cost=cost)
+
+    table = {  # candidate -> its runs on scenarios s1, s2 (three draws each)
+        0: {("s1", 0): run(0.1), ("s1", 1): run(None), ("s1", 2): run(0.1),
+            ("s2", 0): run(0.1), ("s2", 1): run(0.1), ("s2", 2): run(0.1)},
+        1: {("s1", 0): run(1.0), ("s1", 1): run(3.0), ("s1", 2): run(2.0),
+            ("s2", 0): run(1.0), ("s2", 1): run(1.0), ("s2", 2): run(1.0)},
+        2: {("s1", 0): run(1.0), ("s1", 1): run(3.0), ("s1", 2): run(None),
+            ("s2", 0): run(1.0), ("s2", 1): run(1.0), ("s2", 2): run(1.0)},
+    }
+
+    class Fake:
+        seed = 11
+        settings = SimpleNamespace(cvar_alpha=0.5)
+
+        def evaluate(self, ctl: int, stop_on_failure: bool = True) -> SimpleNamespace:
+            runs = table[ctl]
+            failed = [k for k, r in runs.items() if r.cost is None]
+            return SimpleNamespace(runs=runs,
+                                   failure=f"aborted in {failed[0][0]}" if failed else None)
+
+    cands = [Candidate(s, f"s{s}", SimpleNamespace(params={"i": s}, number=0, value=0.5))
+             for s in (0, 1, 2)]  # type: ignore[arg-type]
+    sel = select(cands, [Fake()], lambda p: p["i"])  # type: ignore[arg-type, return-value]
+    assert sel.kept == 1
+    rows = sel.rows()
+    assert [r["failed"] for r in rows] == [1, 0, 1]
+    # candidate 1: s1 CVaR_0.5 of (1, 3, 2) = mean of the worst 2 = 2.5, s2 = 1.0
+    assert rows[1]["score"] == pytest.approx(1.75, rel=1e-12)
+    # candidate 2: s1 over (1, 3) only: the worst 1 = 3.0, s2 = 1.0
+    assert rows[2]["score"] == pytest.approx(2.0, rel=1e-12)
+    assert "seed 0 0.1 with 1 failed runs (first: aborted in s1)" in sel.notes()[0]
+    del table[1]
+    cands.pop(1)
+    sel = select(cands, [Fake()], lambda p: p["i"])  # type: ignore[arg-type, return-value]
+    assert sel.kept == 0  # both lose one run: the lower score

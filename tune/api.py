@@ -9,7 +9,10 @@ What the command does, a notebook does the same way, with the same validation::
 
 Steps: validate the settings and the model; check that every plant draw can be tracked,
 narrowing the ranges no controller tracks (:mod:`.feasibility`); run the study (:mod:`.study`)
-to ``settings.trials`` finished trials; build the best trial's controller with its provenance;
+to ``settings.trials`` finished trials and keep its best trial that passes the held-out guard
+(:mod:`.guard`); with ``settings.restarts`` > 1 do so for each seed and keep the study whose
+trial scores best on selection draws (:mod:`.restarts`); build the kept trial's controller
+with its provenance;
 score it against the paper's controller on every scenario and draw (:mod:`.report`); write
 controller.yaml, report.md with its figures, and the nominal and worst plants (atomically) into
 ``settings.out``.
@@ -51,6 +54,7 @@ from .logcheck import check_logs, logged_controller
 from .objective import ObjectiveSettings, TuneError, TuneObjective
 from .pruners import check_pruner
 from .report import Comparison, compare, write_report
+from .restarts import Candidate, select, selection_objectives
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
 from .space import THETA_0_PARAM, controller_from_params, search_space
 from .storage import DEFAULT_JOURNAL, redact_url, storage_scheme
@@ -92,6 +96,10 @@ class TuneSettings:
     pruner : str or None
         ``wilcoxon``, ``median`` or ``none`` (:func:`pneutune.tune.pruners.make_pruner`); None
         (default): a resumed study's own, ``median`` for a new one.
+    restarts : int
+        Independent studies, seeds ``seed`` .. ``seed + restarts - 1``, each of ``trials``
+        trials; the controller kept is the one that scores best on plants none of them saw
+        (:mod:`pneutune.tune.restarts`). 1 (default): one study.
     """
 
     trials: int
@@ -104,6 +112,7 @@ class TuneSettings:
     objective: ObjectiveSettings = field(default_factory=ObjectiveSettings)
     sampler: str = DEFAULT_SAMPLER
     pruner: str | None = None
+    restarts: int = 1
 
     def __post_init__(self) -> None:
         if self.trials < 1:
@@ -112,6 +121,8 @@ class TuneSettings:
             raise argument_error(TuneError, "workers", f"must be >= 1, got {self.workers}")
         if self.seed < 0:
             raise argument_error(TuneError, "seed", f"must be >= 0, got {self.seed}")
+        if self.restarts < 1:
+            raise argument_error(TuneError, "restarts", f"must be >= 1, got {self.restarts}")
         if self.jobs is not None and self.jobs < 1:
             raise argument_error(TuneError, "jobs", f"must be >= 1, got {self.jobs}")
         check_sampler(self.sampler)  # unknown, or its package missing: before any simulation
@@ -351,50 +362,49 @@ def tune(model: Any, settings: TuneSettings | None = None,
         scratch = tempfile.TemporaryDirectory(prefix="pneutune-tune-")
         storage = str(Path(scratch.name) / DEFAULT_JOURNAL)
     storage_scheme(storage)  # an unknown scheme is bad input before any simulation
-    try:
-        feas = check_feasibility(model_cfg, settings.seed, settings.objective,
-                                 progress=notes)
-    except InfeasibleModelError as exc:
-        raise ConfigError(name, "", str(exc)) from None
-    objective_settings = dataclasses.replace(settings.objective, box=feas.box)
-    study_name = settings.study or default_study_name(model_sha, settings.seed,
-                                                      settings.objective.variant,
-                                                      settings.sampler,
-                                                      settings.objective.dead_zone)
     jobs = settings.jobs if settings.jobs is not None else (
-        min(available_cpus(), objective_settings.n_draws) if settings.workers == 1 else 1)
-    first = [] if feas.paper_failure is None else [feas.reference_params]
-    logged = _logged_trial(model_cfg, name, settings, first, notes)
-    if logged is not None:
-        first.append(logged)
-    spec = StudySpec(storage, study_name, settings.seed, settings.trials, settings.workers,
-                     model_sha, objective_settings, jobs, extra_first=tuple(first),
-                     sampler=settings.sampler, pruner=settings.pruner)
-    run = run_study(spec, model_cfg, progress=progress)
-    study = run.study
-    counts = run.counts_after
-    if not any(t.state.name == "COMPLETE" for t in study.get_trials(deepcopy=False)):
-        raise ConfigError(name, "", f"study {study_name!r}: no trial completed "
-                          f"({counts['PRUNED']} pruned, {counts['FAIL']} failed): "
-                          f"{failure_summary(study)}; check the model's ranges and fit")
+        min(available_cpus(), settings.objective.n_draws) if settings.workers == 1 else 1)
     dead_zone = settings.objective.dead_zone
-    guard = guarded_best(study, model_cfg, settings.seed, objective_settings,
-                         lambda p: controller_from_params(model_cfg, p, dead_zone=dead_zone),
-                         jobs=jobs)
-    for line in guard.notes():
+
+    def make(params: dict[str, float]) -> ControllerConfig:
+        return controller_from_params(model_cfg, params, dead_zone=dead_zone)
+
+    arms = []
+    for r in range(settings.restarts):
+        arm_notes = notes if settings.restarts == 1 or notes is None else (
+            lambda line, r=r: notes(f"[seed {settings.seed + r}] {line}"))
+        arm_progress = progress if progress is None else (
+            lambda done, total, r=r: progress(r * settings.trials + done,
+                                              (settings.restarts - 1) * settings.trials + total))
+        arms.append(_run_arm(model_cfg, model_sha, name, storage, settings, settings.seed + r,
+                             jobs, make, arm_progress, arm_notes))
+    selection = None
+    if settings.restarts > 1:
         if notes is not None:
-            notes(line)
+            notes(f"scoring the {settings.restarts} restarts' controllers on selection draws")
+        selection = select([Candidate(a.seed, a.study_name, a.guard.trial) for a in arms],
+                           selection_objectives(model_cfg, settings.seed, settings.objective,
+                                                jobs), make)
+        for line in selection.notes():
+            if notes is not None:
+                notes(line)
+    arm = arms[0 if selection is None else selection.kept]
+    feas, guard, run, study, study_name = arm.feas, arm.guard, arm.run, arm.run.study, \
+        arm.study_name
+    objective_settings, seed = arm.objective_settings, arm.seed
+    counts = run.counts_after
     best = guard.trial
-    prov = provenance(model_sha, study_name, best.number, float(best.value), settings.seed,
-                      [*feas.notes(), *guard.notes()])
+    prov = provenance(model_sha, study_name, best.number, float(best.value), seed,
+                      [*feas.notes(), *guard.notes(),
+                       *([] if selection is None else selection.notes())])
     tuned = controller_from_params(model_cfg, best.params, prov, dead_zone=dead_zone)
     paper = load_controller(PAPER_CONTROLLER)
-    objective = TuneObjective(model_cfg, settings.seed, objective_settings, jobs=jobs)
+    objective = TuneObjective(model_cfg, seed, objective_settings, jobs=jobs)
     comp = compare(objective, tuned, paper)
     behind = behind_paper(comp, best.number, settings)
     if behind is not None and notes is not None:
         notes(behind)
-    log_check = check_logs(model_cfg, tuned, settings.seed, name)
+    log_check = check_logs(model_cfg, tuned, seed, name)
     for line in log_check.warnings():
         if notes is not None:
             notes(line)
@@ -405,18 +415,70 @@ def tune(model: Any, settings: TuneSettings | None = None,
         "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
         "behind_paper": behind, "log_check": log_check.lines(),
-        "study": study_name, "seed": settings.seed, "paper": paper,
+        "study": study_name, "seed": seed, "paper": paper,
+        "restarts": None if selection is None else selection.rows(),
     }
-    info = {"model": name, "model_sha256": model_sha, "seed": settings.seed,
+    info = {"model": name, "model_sha256": model_sha, "seed": seed,
             "study": study_name, "storage": redact_url(storage), "workers": settings.workers,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
             "pruner": run.pruner,
+            "restarts": None if selection is None else selection.rows(),
+            "wall_s_restarts": sum(a.run.wall_s for a in arms),
             "behind_paper": behind, "log_check": log_check.as_dict()}
     result = TuneResult(tuned, study, best, comp, feas, run, {}, info, guard,
                         objective, report_info, scratch)
     if settings.out is None:
         return result
     return dataclasses.replace(result, paths=result.save(settings.out))
+
+
+@dataclass(frozen=True)
+class _Arm:
+    """One study of a tune (one restart): its seed, name, feasibility, run and guarded trial."""
+
+    seed: int
+    study_name: str
+    feas: Feasibility
+    objective_settings: ObjectiveSettings
+    run: RunSummary
+    guard: GuardResult
+
+
+def _run_arm(model: ModelConfig, model_sha: str, name: str, storage: str,
+             settings: TuneSettings, seed: int, jobs: int,
+             make: Callable[[dict[str, float]], ControllerConfig],
+             progress: Callable[[int, int], None] | None,
+             notes: Callable[[str], None] | None) -> _Arm:
+    """Check feasibility, run (or resume) the study of ``seed`` and apply the held-out guard."""
+    try:
+        feas = check_feasibility(model, seed, settings.objective, progress=notes)
+    except InfeasibleModelError as exc:
+        raise ConfigError(name, "", str(exc)) from None
+    objective_settings = dataclasses.replace(settings.objective, box=feas.box)
+    if settings.study and seed != settings.seed:
+        study_name = f"{settings.study}-seed{seed}"
+    else:
+        study_name = settings.study or default_study_name(
+            model_sha, seed, settings.objective.variant, settings.sampler,
+            settings.objective.dead_zone)
+    first = [] if feas.paper_failure is None else [feas.reference_params]
+    logged = _logged_trial(model, name, settings, first, notes)
+    if logged is not None:
+        first.append(logged)
+    spec = StudySpec(storage, study_name, seed, settings.trials, settings.workers,
+                     model_sha, objective_settings, jobs, extra_first=tuple(first),
+                     sampler=settings.sampler, pruner=settings.pruner)
+    run = run_study(spec, model, progress=progress)
+    counts = run.counts_after
+    if not any(t.state.name == "COMPLETE" for t in run.study.get_trials(deepcopy=False)):
+        raise ConfigError(name, "", f"study {study_name!r}: no trial completed "
+                          f"({counts['PRUNED']} pruned, {counts['FAIL']} failed): "
+                          f"{failure_summary(run.study)}; check the model's ranges and fit")
+    guard = guarded_best(run.study, model, seed, objective_settings, make, jobs=jobs)
+    for line in guard.notes():
+        if notes is not None:
+            notes(line)
+    return _Arm(seed, study_name, feas, objective_settings, run, guard)
 
 
 def _same(a: dict[str, float], b: dict[str, float]) -> bool:

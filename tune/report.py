@@ -338,6 +338,27 @@ def _guard(notes: list[str]) -> list[str]:
             *[f"- {n}" for n in notes], ""]
 
 
+def _restarts(rows: list[dict[str, Any]] | None) -> list[str]:
+    """The section on the restarts (nothing with one study)."""
+    if not rows:
+        return []
+    lines = ["## Restarts", "",
+             f"{len(rows)} independent studies; each one's guarded best trial was scored on "
+             "plants and noise none of them saw (`pneutune.tune.restarts`), the same for every "
+             "study, and the one with the fewest failed runs, then the lowest score, kept (the "
+             "score is the objective over the completed runs). A study's own objective is on "
+             "its own draws, so it does not compare across studies; the selection score does.",
+             "",
+             "| seed | study | trial | study objective | failed runs | selection score | kept |",
+             "|---:|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        score = "n/a" if r["score"] is None else f"{r['score']:.4f}"
+        failed = f"{r['failed']} ({r['failure']})" if r["failed"] else "0"
+        lines.append(f"| {r['seed']} | `{r['study']}` | #{r['trial']} | {r['objective']:.4f} | "
+                     f"{failed} | {score} | {'yes' if r['kept'] else ''} |")
+    return [*lines, ""]
+
+
 def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
            tuned: ControllerConfig, paper: ControllerConfig, comp: Comparison,
            imp: dict[str, float] | None, info: dict[str, Any]) -> str:
@@ -371,6 +392,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         "",
         *_feasibility(info.get("feasibility") or []),
         *_guard(info.get("guard") or []),
+        *_restarts(info.get("restarts")),
         *([f"**{info['behind_paper']}**", ""] if info.get("behind_paper") else []),
         *(info.get("log_check") or []),
         "## Table 1 on the nominal plant",
