@@ -322,7 +322,8 @@ def run_row(plant_index: int, kind: str, args: argparse.Namespace) -> Row:
     t_tune = time.perf_counter()
     proc = subprocess.run([_exe("tune"), "--model", str(model), "--trials", str(args.trials),
                            "--out", str(out), "--seed", str(args.tune_seed),
-                           "--draws", str(args.draws), "--json"],
+                           "--draws", str(args.draws), "--restarts", str(args.restarts),
+                           "--json"],
                           capture_output=True, text=True)
     row.tune_seconds = time.perf_counter() - t_tune
     if proc.returncode != 0:
@@ -485,6 +486,8 @@ def main() -> int:
     ap.add_argument("--trials", type=int, default=60, help="tune --trials (default 60)")
     ap.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
     ap.add_argument("--tune-seed", type=int, default=1, help="tune --seed (default 1)")
+    ap.add_argument("--restarts", type=int, default=1,
+                    help="tune --restarts (default 1: one study)")
     ap.add_argument("--draws", type=int, default=8,
                     help="tune --draws (default 8, tune's; 1 tunes on the model's nominal plant "
                     "alone: with --kinds t, the true plant itself)")
@@ -545,7 +548,8 @@ def main() -> int:
                              f"({r.seconds:.0f} s)\n")
             # after every row, so that an interrupted fleet keeps what it measured
             summary = (summarise(rows) + f"; {(time.perf_counter() - t0) / 60:.1f} min; tune "
-                       f"--trials {args.trials} --seed {args.tune_seed} --draws {args.draws}; "
+                       f"--trials {args.trials} --seed {args.tune_seed} --draws {args.draws} "
+                       f"--restarts {args.restarts}; "
                        "kinds: " + "; ".join(f"{k} = {KINDS[k]}" for k in kinds))
             text = table(rows)
             data = [r.__dict__ | {"passed": r.passed, "on_target": r.on_target} for r in rows]
