@@ -6,6 +6,7 @@ tuned in memory with quick settings (one 4 s scenario, two plants): a notebook's
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import pytest
@@ -119,62 +120,68 @@ def test_a_tuned_controller_worse_than_the_papers_is_said(tuned: float, paper: f
 
 
 def test_restarts_keep_the_study_that_scores_best_on_the_selection_draws(tmp_path: Path) -> None:
-    """restarts=2: two studies (seeds 3 and 4, names apart), each guarded best scored on the
-    selection draws; the kept one has the lowest score, recomputed here from its trial's
-    parameters on :func:`selection_objectives` (to 1e-12), and controller.yaml is its trial.
-    The same call again resumes both studies and runs no trial."""
+    """restarts=2 on a plant with a 3 ms IO delay, where the paper's gains (every study's trial
+    0) track badly: seed 3's study keeps trial 0, seed 4's a trial of its own. Each score is
+    recomputed here from the kept trial's parameters on :func:`selection_objectives` (to
+    1e-12); the two differ, and the lower is kept, here the second study's. The progress bar
+    runs over both studies; the same call again resumes both and runs no trial."""
     import optuna
 
     from pneutune.tune.restarts import SELECTION_SEED_OFFSET, selection_objectives
     from pneutune.tune.space import controller_from_params
     from pneutune.tune.storage import DEFAULT_JOURNAL, open_storage
 
-    model = model_from_plant(PlantConfig())
-    settings = TuneSettings(trials=3, out=tmp_path, jobs=1, seed=3, restarts=2, objective=QUICK)
-    result = tune(model, settings)
+    model = model_from_plant(PlantConfig().with_updates({"io": {"delay": 0.003}}))
+    settings = TuneSettings(trials=4, out=tmp_path, jobs=1, seed=3, restarts=2, objective=QUICK)
+    calls: list[tuple[int, int]] = []
+    result = tune(model, settings, progress=lambda done, total: calls.append((done, total)))
     rows = result.summary()["restarts"]
     assert [r["seed"] for r in rows] == [3, 4]
     assert rows[0]["study"] != rows[1]["study"]
+    assert [(r["finished"], r["this_run"]) for r in rows] == [(4, 4), (4, 4)]
+    assert calls[-1] == (8, 8) and all(a[0] <= b[0] for a, b in itertools.pairwise(calls))
     objectives = selection_objectives(model, 3, QUICK, jobs=1)
     assert [o.seed for o in objectives] == [3 + SELECTION_SEED_OFFSET, 4 + SELECTION_SEED_OFFSET]
+    storage = open_storage(str(tmp_path / DEFAULT_JOURNAL))
     scores = []
     for r in rows:
-        study = optuna.load_study(study_name=r["study"],
-                                  storage=open_storage(str(tmp_path / DEFAULT_JOURNAL)))
-        params = study.trials[r["trial"]].params
-        ctl = controller_from_params(model, params)
+        study = optuna.load_study(study_name=r["study"], storage=storage)
+        ctl = controller_from_params(model, study.trials[r["trial"]].params)
         scores.append(sum(o.evaluate(ctl).value for o in objectives) / len(objectives))
-        assert r["score"] == pytest.approx(scores[-1], rel=1e-12)
-    kept = min(range(2), key=lambda i: (scores[i], i))
-    assert [r["kept"] for r in rows] == [i == kept for i in range(2)]
-    assert result.summary()["seed"] == rows[kept]["seed"]
-    assert result.best.number == rows[kept]["trial"]
-    assert result.study.study_name == rows[kept]["study"]
+        assert r["failed"] == 0 and r["score"] == pytest.approx(scores[-1], rel=1e-12)
+    assert abs(scores[0] - scores[1]) > 0.01 * scores[0]
+    kept = min(range(2), key=lambda i: scores[i])
+    assert kept == 1 and [r["kept"] for r in rows] == [False, True]
+    assert result.summary()["seed"] == 4
+    assert result.best.number == rows[1]["trial"]
+    assert result.study.study_name == rows[1]["study"]
     assert "## Restarts" in Path(result.paths["report"]).read_text()
     assert any("best of 2 restarts" in n for n in result.controller.provenance.notes)
-    again = tune(model, settings)
-    assert again.summary()["trials"]["this_run"] == 0
-    assert again.summary()["restarts"] == rows
+    again = tune(model, settings).summary()["restarts"]
+    assert [(r["finished"], r["this_run"]) for r in again] == [(4, 0), (4, 0)]
+    assert [{k: v for k, v in r.items() if k != "this_run"} for r in again] == \
+        [{k: v for k, v in r.items() if k != "this_run"} for r in rows]
 
 
-def test_restarts_rank_by_failed_runs_then_score() -> None:
-    """The candidate with the fewest failed runs is kept even with a higher score; among equals
-    the lowest score; a failed run's cost is left out of its scenario's CVaR (α = 0.5 over the
-    two completed costs 1.0 and 3.0 of a three-draw scenario: 3.0)."""
+def test_restarts_rank_by_failed_runs_then_score_on_common_runs() -> None:
+    """The candidate with the fewest failed runs is kept even with a higher score; among equal
+    counts the lowest score, each candidate scored only on the runs every candidate completed
+    (CVaR α = 0.5 over those draws, the mean over the scenarios), so that a candidate that fails
+    its worst plant gains nothing by it."""
     from types import SimpleNamespace
 
     from pneutune.tune.restarts import Candidate, select
 
-    def run(cost: float | None) -> SimpleNamespace:
-        return SimpleNamespace(cost=cost)
+    def runs(s1: tuple[float | None, ...], s2: tuple[float | None, ...]) -> dict:
+        return {**{("s1", d): SimpleNamespace(cost=c) for d, c in enumerate(s1)},
+                **{("s2", d): SimpleNamespace(cost=c) for d, c in enumerate(s2)}}
 
     table = {  # candidate -> its runs on scenarios s1, s2 (three draws each)
-        0: {("s1", 0): run(0.1), ("s1", 1): run(None), ("s1", 2): run(0.1),
-            ("s2", 0): run(0.1), ("s2", 1): run(0.1), ("s2", 2): run(0.1)},
-        1: {("s1", 0): run(1.0), ("s1", 1): run(3.0), ("s1", 2): run(2.0),
-            ("s2", 0): run(1.0), ("s2", 1): run(1.0), ("s2", 2): run(1.0)},
-        2: {("s1", 0): run(1.0), ("s1", 1): run(3.0), ("s1", 2): run(None),
-            ("s2", 0): run(1.0), ("s2", 1): run(1.0), ("s2", 2): run(1.0)},
+        0: runs((0.1, None, 0.1), (0.1, 0.1, 0.1)),
+        1: runs((1.0, 3.0, 2.0), (1.0, 1.0, 1.0)),
+        2: runs((1.0, 0.5, None), (1.0, 1.0, 1.0)),
+        3: runs((0.3, 0.3, 9.0), (0.3, 0.3, 0.3)),  # fails nothing, worst on s1's draw 2
+        4: runs((0.5, 0.5, None), (0.3, 0.3, 0.3)),  # fails exactly that run
     }
 
     class Fake:
@@ -182,23 +189,27 @@ def test_restarts_rank_by_failed_runs_then_score() -> None:
         settings = SimpleNamespace(cvar_alpha=0.5)
 
         def evaluate(self, ctl: int, stop_on_failure: bool = True) -> SimpleNamespace:
-            runs = table[ctl]
-            failed = [k for k, r in runs.items() if r.cost is None]
-            return SimpleNamespace(runs=runs,
+            failed = [k for k, r in table[ctl].items() if r.cost is None]
+            return SimpleNamespace(runs=table[ctl],
                                    failure=f"aborted in {failed[0][0]}" if failed else None)
 
-    cands = [Candidate(s, f"s{s}", SimpleNamespace(params={"i": s}, number=0, value=0.5))
-             for s in (0, 1, 2)]  # type: ignore[arg-type]
-    sel = select(cands, [Fake()], lambda p: p["i"])  # type: ignore[arg-type, return-value]
+    def cands(*ids: int) -> list[Candidate]:
+        return [Candidate(i, f"s{i}", SimpleNamespace(params={"i": i}, number=0, value=0.5))
+                for i in ids]  # type: ignore[arg-type]
+
+    def pick(*ids: int):
+        return select(cands(*ids), [Fake()], lambda p: p["i"])  # type: ignore[arg-type]
+
+    sel = pick(0, 1, 2)
     assert sel.kept == 1
     rows = sel.rows()
     assert [r["failed"] for r in rows] == [1, 0, 1]
-    # candidate 1: s1 CVaR_0.5 of (1, 3, 2) = mean of the worst 2 = 2.5, s2 = 1.0
-    assert rows[1]["score"] == pytest.approx(1.75, rel=1e-12)
-    # candidate 2: s1 over (1, 3) only: the worst 1 = 3.0, s2 = 1.0
-    assert rows[2]["score"] == pytest.approx(2.0, rel=1e-12)
+    # runs every candidate completed: s1's draw 0, all of s2; CVaR_0.5 of one cost is itself
+    assert [r["score"] for r in rows] == pytest.approx([0.1, 1.0, 1.0], rel=1e-12)
     assert "seed 0 0.1 with 1 failed runs (first: aborted in s1)" in sel.notes()[0]
-    del table[1]
-    cands.pop(1)
-    sel = select(cands, [Fake()], lambda p: p["i"])  # type: ignore[arg-type, return-value]
-    assert sel.kept == 0  # both lose one run: the lower score
+    assert pick(0, 2).kept == 0  # both lose one run: the lower score on the runs both completed
+    # 4 fails the plant where 3 is worst: on the same runs 3 scores 0.3 and 4 scores 0.4, so 3
+    # is kept on failures alone and would be on the score too
+    sel = pick(4, 3)
+    assert [r["score"] for r in sel.rows()] == pytest.approx([0.4, 0.3], rel=1e-12)
+    assert sel.kept == 1

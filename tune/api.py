@@ -80,7 +80,9 @@ class TuneSettings:
         Journal file path or RDB URL; default ``out/study.journal``, or with no ``out`` a
         temporary journal that lives as long as the result (the study cannot be resumed).
     study : str or None
-        Study name; default ``tune-<model sha256[:12]>-seed<S>``.
+        Study name; default ``tune-<model sha256[:12]>-seed<S>``. With ``restarts`` > 1 the
+        studies are ``<study>-seed<S>``, ``<study>-seed<S+1>``, ... (the default names already
+        differ by seed).
     workers : int
         Worker processes on this host (1: reproducible).
     jobs : int or None
@@ -98,8 +100,9 @@ class TuneSettings:
         (default): a resumed study's own, ``median`` for a new one.
     restarts : int
         Independent studies, seeds ``seed`` .. ``seed + restarts - 1``, each of ``trials``
-        trials; the controller kept is the one that scores best on plants none of them saw
-        (:mod:`pneutune.tune.restarts`). 1 (default): one study.
+        trials; the controller kept is the one that scores best on selection draws with new
+        noise and new Latin-hypercube plants (:mod:`pneutune.tune.restarts`). 1 (default):
+        one study.
     """
 
     trials: int
@@ -135,6 +138,8 @@ class TuneResult:
 
     ``controller`` is contract 4 (controller.yaml); :meth:`save` writes it with the report and
     the plants. ``repr`` shows the study, the kept trial and its score against the paper's.
+    With restarts, ``study``, ``best``, ``feasibility``, ``run``, ``guard`` and ``info["seed"]``
+    are the kept study's; ``info["restarts"]`` lists every study (None with one).
 
     Attributes
     ----------
@@ -369,22 +374,31 @@ def tune(model: Any, settings: TuneSettings | None = None,
     def make(params: dict[str, float]) -> ControllerConfig:
         return controller_from_params(model_cfg, params, dead_zone=dead_zone)
 
-    arms = []
+    arms: list[_Arm] = []
     for r in range(settings.restarts):
         arm_notes = notes if settings.restarts == 1 or notes is None else (
             lambda line, r=r: notes(f"[seed {settings.seed + r}] {line}"))
+        # the bar runs over every study: those done count what they hold, those to come --trials
+        before = sum(finished(a.run.counts_after) for a in arms)
+        to_come = (settings.restarts - 1 - r) * settings.trials
         arm_progress = progress if progress is None else (
-            lambda done, total, r=r: progress(r * settings.trials + done,
-                                              (settings.restarts - 1) * settings.trials + total))
+            lambda done, total, before=before, to_come=to_come:
+            progress(before + done, before + total + to_come))
         arms.append(_run_arm(model_cfg, model_sha, name, storage, settings, settings.seed + r,
                              jobs, make, arm_progress, arm_notes))
     selection = None
     if settings.restarts > 1:
         if notes is not None:
             notes(f"scoring the {settings.restarts} restarts' controllers on selection draws")
-        selection = select([Candidate(a.seed, a.study_name, a.guard.trial) for a in arms],
+        # the workers have exited: the selection may use every CPU
+        sel_jobs = settings.jobs if settings.jobs is not None else min(
+            available_cpus(), settings.objective.n_draws)
+        selection = select([Candidate(a.seed, a.study_name, a.guard.trial,
+                                      finished=finished(a.run.counts_after),
+                                      this_run=finished(a.run.counts_after)
+                                      - finished(a.run.counts_before)) for a in arms],
                            selection_objectives(model_cfg, settings.seed, settings.objective,
-                                                jobs), make)
+                                                sel_jobs), make)
         for line in selection.notes():
             if notes is not None:
                 notes(line)
@@ -423,7 +437,8 @@ def tune(model: Any, settings: TuneSettings | None = None,
             "jobs": jobs, "n_trials": settings.trials, "sampler": settings.sampler,
             "pruner": run.pruner,
             "restarts": None if selection is None else selection.rows(),
-            "wall_s_restarts": sum(a.run.wall_s for a in arms),
+            **({} if selection is None else
+               {"wall_s_restarts": sum(a.run.wall_s for a in arms)}),
             "behind_paper": behind, "log_check": log_check.as_dict()}
     result = TuneResult(tuned, study, best, comp, feas, run, {}, info, guard,
                         objective, report_info, scratch)
@@ -455,7 +470,7 @@ def _run_arm(model: ModelConfig, model_sha: str, name: str, storage: str,
     except InfeasibleModelError as exc:
         raise ConfigError(name, "", str(exc)) from None
     objective_settings = dataclasses.replace(settings.objective, box=feas.box)
-    if settings.study and seed != settings.seed:
+    if settings.study and settings.restarts > 1:
         study_name = f"{settings.study}-seed{seed}"
     else:
         study_name = settings.study or default_study_name(
@@ -524,8 +539,8 @@ def behind_paper(comp: Comparison, trial: int, settings: TuneSettings) -> str | 
         return None
     return (f"warning: trial #{trial} scores {t:.4g} on the study's plants, worse than the "
             f"paper's controller ({p:.4g}): {settings.trials} trials did not find a better "
-            f"region; resume with a larger --trials (the finished trials are kept) or try "
-            f"another --seed")
+            f"region; resume with a larger --trials (the finished trials are kept), try "
+            f"another --seed, or --restarts 3")
 
 
 def _save(out: Path, result: TuneResult, objective: TuneObjective,

@@ -150,8 +150,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                              "study uses its own")
     parser.add_argument("--restarts", type=int, default=1, metavar="K",
                         help="run K independent studies (seeds S..S+K-1, each of --trials "
-                             "trials, K times the time) and keep the controller that scores "
-                             "best on plants and noise none of them saw. On the fleet's models "
+                             "trials, K times the time; with --study NAME they are "
+                             "NAME-seed<S>, ...) and keep the controller that scores best on "
+                             "selection draws with new noise and new plants, the same for "
+                             "every study. On the fleet's models "
                              "three restarts brought the true plant's figure from 0.94 (one "
                              "study, mean over seeds) to 0.83-0.84 (docs/tuning.md, "
                              "\"Restarts\"). Default 1")

@@ -344,18 +344,21 @@ def _restarts(rows: list[dict[str, Any]] | None) -> list[str]:
         return []
     lines = ["## Restarts", "",
              f"{len(rows)} independent studies; each one's guarded best trial was scored on "
-             "plants and noise none of them saw (`pneutune.tune.restarts`), the same for every "
-             "study, and the one with the fewest failed runs, then the lowest score, kept (the "
-             "score is the objective over the completed runs). A study's own objective is on "
-             "its own draws, so it does not compare across studies; the selection score does.",
-             "",
-             "| seed | study | trial | study objective | failed runs | selection score | kept |",
-             "|---:|---|---:|---:|---:|---:|---|"]
+             "the same selection draws (`pneutune.tune.restarts`: new sensor noise and new "
+             "Latin-hypercube plants beside the nominal plant and the corners), and the one "
+             "with the fewest failed runs, then the lowest score, kept (the score is the "
+             "objective over the runs every study's trial completed). A study's own objective "
+             "is on its own draws, so it does not compare across studies; the selection score "
+             "does.", "",
+             "| seed | study | trials (this run) | trial | study objective | failed runs | "
+             "selection score | kept |",
+             "|---:|---|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         score = "n/a" if r["score"] is None else f"{r['score']:.4f}"
         failed = f"{r['failed']} ({r['failure']})" if r["failed"] else "0"
-        lines.append(f"| {r['seed']} | `{r['study']}` | #{r['trial']} | {r['objective']:.4f} | "
-                     f"{failed} | {score} | {'yes' if r['kept'] else ''} |")
+        lines.append(f"| {r['seed']} | `{r['study']}` | {r['finished']} ({r['this_run']}) | "
+                     f"#{r['trial']} | {r['objective']:.4f} | {failed} | {score} | "
+                     f"{'yes' if r['kept'] else ''} |")
     return [*lines, ""]
 
 

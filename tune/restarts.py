@@ -4,15 +4,17 @@ One TPE study of 200 trials lands in a different region with each seed, and how 
 is on the true plant varies more between seeds than between the methods tried to improve a single
 study (docs/tuning.md, "Restarts"). ``tune --restarts K`` runs K studies, seeds S..S+K-1 (each
 its own draws, noise, feasibility check and held-out guard), and keeps the controller that
-scores best on *selection draws*: plants and sensor noise none of the studies saw, the same for
-every candidate. Each study ranks its trials on its own draws, so the studies' objectives are
-not comparable with one another; the selection draws are.
+scores best on *selection draws*, the same for every candidate. Each study ranks its trials on
+its own draws, so the studies' objectives are not comparable with one another; the selection
+draws are.
 
 The selection draws are :data:`SELECTION_SEEDS` sets of the objective's draws, with the seeds
-``seed + SELECTION_SEED_OFFSET + j``; each set's box is narrowed by its own feasibility check
+``seed + SELECTION_SEED_OFFSET + j``: new sensor noise and new Latin-hypercube plants (the
+nominal plant and the two corners of the box are in every set of draws, the studies' too).
+Each set's box is narrowed by its own feasibility check
 (:func:`pneutune.tune.feasibility.check_feasibility`), as a study's is. The kept candidate has
-the fewest failed runs there, then the lowest score: the mean over the sets of the objective
-over the completed runs (:func:`select`).
+the fewest failed runs there, then the lowest score: the objective over the runs that every
+candidate completed (:func:`select`), so that candidates are compared on the same plants.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 from optuna.trial import FrozenTrial
 
 from pneutune.control.contracts.controller import ControllerConfig
@@ -49,12 +52,16 @@ class Candidate:
     trial : FrozenTrial
         The trial its held-out guard kept.
     score : float
-        Mean over the selection sets of the objective over the completed runs (nan: not
-        scored; :func:`selection_score`).
+        Mean over the selection sets of the objective over the runs every candidate completed
+        (nan: not scored, or no run that every candidate completed; :func:`common_score`).
     failed : int
         Runs that failed on the selection draws.
     failure : str or None
         The first of them.
+    finished : int
+        Finished (complete + pruned) trials the study holds.
+    this_run : int
+        Of them, those this run finished.
     """
 
     seed: int
@@ -63,6 +70,8 @@ class Candidate:
     score: float = math.nan
     failed: int = 0
     failure: str | None = None
+    finished: int = 0
+    this_run: int = 0
 
 
 @dataclass(frozen=True)
@@ -98,10 +107,11 @@ class Selection:
                 f"scored {_score(c)} (study objective {c.trial.value:.4g}); {others}"]
 
     def rows(self) -> list[dict[str, object]]:
-        """Per candidate: seed, study, trial, study objective, selection score (None: not
-        finite), failed runs, the first failure, kept."""
-        return [{"seed": c.seed, "study": c.study, "trial": c.trial.number,
-                 "objective": c.trial.value,
+        """Per candidate: seed, study, its finished trials and those of this run, the kept
+        trial and its study objective, selection score (None: not finite), failed runs, the
+        first failure, kept."""
+        return [{"seed": c.seed, "study": c.study, "finished": c.finished,
+                 "this_run": c.this_run, "trial": c.trial.number, "objective": c.trial.value,
                  "score": c.score if math.isfinite(c.score) else None, "failed": c.failed,
                  "failure": c.failure, "kept": i == self.kept}
                 for i, c in enumerate(self.candidates)]
@@ -123,8 +133,9 @@ def selection_objectives(model: ModelConfig, seed: int, settings: ObjectiveSetti
     seed : int
         The first restart's seed.
     settings : ObjectiveSettings
-        The studies' settings; each set's ``box`` is its own feasibility check's (the studies'
-        own box when the check finds no trackable nominal plant).
+        The settings the studies started from (before their feasibility checks); each set's
+        ``box`` is its own feasibility check's, or ``settings.box`` when that check finds the
+        nominal plant untrackable.
     jobs : int
         Threads for the draws.
 
@@ -143,44 +154,49 @@ def selection_objectives(model: ModelConfig, seed: int, settings: ObjectiveSetti
     return out
 
 
-def selection_score(ev: Evaluation, alpha: float) -> tuple[int, float]:
-    """Failed runs and the objective over the completed ones of one evaluation.
+def run_costs(ev: Evaluation) -> dict[tuple[str, int], float | None]:
+    """Each run's cost of an evaluation run to the end: (scenario, draw) -> cost, None if the
+    run failed."""
+    return {key: rc.cost for key, rc in ev.runs.items()}
+
+
+def common_score(costs: Mapping[tuple[str, int], float | None],
+                 completed: set[tuple[str, int]], alpha: float) -> float:
+    """The objective over the runs in ``completed``.
 
     Parameters
     ----------
-    ev : Evaluation
-        An evaluation run to the end (``stop_on_failure=False``).
+    costs : mapping
+        (scenario, draw) -> cost (:func:`run_costs`).
+    completed : set
+        The runs to score: those every candidate completed.
     alpha : float
         The objective's CVaR level.
 
     Returns
     -------
-    failed : int
-        Runs that failed.
-    value : float
-        Mean over the scenarios of the CVaR over the draws whose run completed (the objective
-        itself when none failed); inf when a scenario has no completed run.
+    float
+        Mean over the scenarios with a run in ``completed`` of the CVaR over those runs' costs,
+        as :meth:`~pneutune.tune.objective.TuneObjective.evaluate` aggregates (its value when
+        every run is in ``completed``); nan when none is.
     """
     by: dict[str, list[float]] = {}
-    failed = 0
-    for (scenario, _), rc in ev.runs.items():
-        costs = by.setdefault(scenario, [])
-        if rc.cost is None:
-            failed += 1
-        else:
-            costs.append(rc.cost)
-    if not by or any(not c for c in by.values()):
-        return failed, math.inf
-    return failed, sum(cvar(c, alpha) for c in by.values()) / len(by)
+    for (scenario, draw), cost in costs.items():
+        if (scenario, draw) in completed and cost is not None:
+            by.setdefault(scenario, []).append(cost)
+    if not by:
+        return math.nan
+    return float(np.mean([cvar(c, alpha) for c in by.values()]))
 
 
 def select(candidates: Sequence[Candidate], objectives: Sequence[TuneObjective],
            make: Callable[[Mapping[str, float]], ControllerConfig]) -> Selection:
     """Score every candidate on the selection draws and keep the best.
 
-    The best has the fewest failed runs, then the lowest score (:func:`selection_score`,
-    averaged over the sets): a model whose ranges hold a plant that every candidate loses still
-    gets the candidate that loses the fewest runs and tracks the rest best.
+    The best has the fewest failed runs, then the lowest score: per selection set the objective
+    over the runs that every candidate completed (:func:`common_score`), averaged over the
+    sets. A model whose ranges hold a plant that every candidate loses still gets the candidate
+    that loses the fewest runs and tracks the same other plants best.
 
     Parameters
     ----------
@@ -194,23 +210,38 @@ def select(candidates: Sequence[Candidate], objectives: Sequence[TuneObjective],
     Returns
     -------
     Selection
-        Ties keep the earliest restart.
+        Ties (and nan scores) keep the earliest restart.
     """
-    scored = []
-    for c in candidates:
-        ctl = make(c.trial.params)
-        failed, values, failure = 0, [], None
+    ctls = [make(c.trial.params) for c in candidates]
+    costs: list[list[dict[tuple[str, int], float | None]]] = []  # [candidate][set]
+    failures: list[str | None] = []
+    for ctl in ctls:
+        per_set, failure = [], None
         for obj in objectives:
             ev = obj.evaluate(ctl, stop_on_failure=False)
-            n, value = selection_score(ev, obj.settings.cvar_alpha)
-            failed += n
-            values.append(value)
+            per_set.append(run_costs(ev))
             failure = failure or ev.failure
-        scored.append(dataclasses.replace(c, score=sum(values) / len(values), failed=failed,
-                                          failure=failure))
-    kept = min(range(len(scored)), key=lambda i: (scored[i].failed, scored[i].score, i))
+        costs.append(per_set)
+        failures.append(failure)
+    scored = []
+    for i, c in enumerate(candidates):
+        values = []
+        for j, obj in enumerate(objectives):
+            completed = {k for k in costs[i][j]
+                         if all(costs[m][j].get(k) is not None for m in range(len(candidates)))}
+            values.append(common_score(costs[i][j], completed, obj.settings.cvar_alpha))
+        failed = sum(v is None for per_set in costs[i] for v in per_set.values())
+        score = float(np.mean(values)) if values and not any(math.isnan(v) for v in values) \
+            else math.nan
+        scored.append(dataclasses.replace(c, score=score, failed=failed, failure=failures[i]))
+
+    def rank(i: int) -> tuple[int, float, int]:
+        sc = scored[i].score
+        return scored[i].failed, (math.inf if math.isnan(sc) else sc), i
+
+    kept = min(range(len(scored)), key=rank)
     return Selection(tuple(scored), kept, tuple(o.seed for o in objectives))
 
 
-__all__ = ["SELECTION_SEEDS", "SELECTION_SEED_OFFSET", "Candidate", "Selection", "select",
-           "selection_objectives", "selection_score"]
+__all__ = ["SELECTION_SEEDS", "SELECTION_SEED_OFFSET", "Candidate", "Selection", "common_score",
+           "run_costs", "select", "selection_objectives"]
