@@ -39,6 +39,7 @@ def _substitute(code: str, old: str, new: str) -> str:
     return code.replace(old, new)
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_the_readme_example_runs_the_loop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     """identify -> tune -> save -> deploy from Python, as the README shows it."""
@@ -97,6 +98,7 @@ def test_deploy_writes_logs_only_when_asked(tmp_path: Path) -> None:
     assert isinstance(quiet.config, ControllerConfig)
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_identify_takes_a_log_already_read() -> None:
     """A RunLog gives the model its file gives (the fits see the same samples)."""
     log = read_run_log(RUN)

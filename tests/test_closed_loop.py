@@ -112,6 +112,7 @@ def test_groups_cover_table1():
     assert set(GROUPS["all"]) == set(SCENARIOS)
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_cli_json_is_one_object_and_reproducible(tmp_path):
     """`simulate --controller --scenario --json` prints exactly one JSON object with the metrics
     per scenario, and a seeded run gives the same numbers in another process."""

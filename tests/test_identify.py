@@ -122,6 +122,7 @@ def test_mass_interval_and_honesty(case):
         assert any(n.startswith("mass: not identifiable") for n in r.model.notes), name
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_unpinnable_b_gets_an_honest_range(tmp_path):
     """An exhaust valve with b = 0.12 never chokes from a 6 bar supply (that needs
     p > p0/b = 8.4 bar), so its b is weakly determined: the estimate may miss 5 %, but the
@@ -137,6 +138,7 @@ def test_unpinnable_b_gets_an_honest_range(tmp_path):
         assert v.b_min <= 0.12 <= v.b_max, (name, v.b_min, v.b, v.b_max)
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_noise_free_log(tmp_path):
     """A simulated log without sensor noise or quantisation (a user's idealised plant.yaml) must
     identify, not crash: the bounded fit's slack once left the leak at -4e-17, which the plant

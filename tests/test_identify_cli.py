@@ -127,6 +127,7 @@ def test_time_backwards(tmp_path, source):
     assert "backwards" in line or "time" in line
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_missing_rig_metadata_key(tmp_path, source):
     """The writer insists on every rig key, so this log is the shipped one with the metadata
     record rewritten through a raw MCAP writer."""
@@ -180,6 +181,7 @@ def test_valve_never_opens_is_not_identifiable(tmp_path, source):
     assert "b_out" in line and "never" in line
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_piston_never_moves_is_not_identifiable(tmp_path, source):
     """A log of only the valve tests, the piston on an end stop throughout: both chambers'
     tests from their preparations on, without the approach onto the second stop, which the
@@ -197,6 +199,7 @@ def test_piston_never_moves_is_not_identifiable(tmp_path, source):
     assert "hardly moves" in line
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_closed_loop_log_without_labels_or_truth(tmp_path):
     """A real user's log: a closed-loop run (here deploy's, paper config) with only
     /rig/sensors, /rig/valves and the rig metadata. identify must run, write a model that
@@ -226,6 +229,7 @@ def test_closed_loop_log_without_labels_or_truth(tmp_path):
     assert model.theta.min[2] <= truth.friction.b_v <= model.theta.max[2]
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_json_and_outputs(tmp_path):
     """--json prints exactly one JSON object; model.yaml and report.md with its figures land in
     --out."""

@@ -68,6 +68,7 @@ def test_true_plant_predicts_every_sample_exactly(run):
     assert _innovation_rms(pp.vec, run) < 1.0e-9
 
 
+@pytest.mark.slow  # over 20 s; `make test-slow` and CI run it
 def test_wrong_delays_and_mass_show(run):
     """Delays 0.2 ms late leave pressure errors of hundreds of Pa (≈ 0.2 ms × dp/dt; measured
     469 Pa rms); twice the mass, a lag 0.3 ms longer, leaves position innovations of microns
