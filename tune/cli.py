@@ -43,8 +43,9 @@ cost is the tracking error relative to the paper's Table 1 plus penalties for va
 chamber pressures outside [p0/2, p_s + 0.5 bar] and end-stop contact. 1.0 means "as good as the
 paper's rig on every scenario". An unstable run prunes its trial, and so does one that is worse
 than earlier trials on the runs done so far (--pruner: median, wilcoxon or none). Before writing,
-the best trials are run on plants the study never saw and the first that completes every run
-is kept (the held-out guard; report.md says when it passed over the study's best).
+the best trials are run on held-out draws (new noise, new hypercube plants) and the first that
+completes every run is kept (the held-out guard; report.md says when it passed over the study's
+best).
 docs/tuning.md.
 
 When the model came from a closed-loop log that `deploy --log` wrote, the controller that ran is

@@ -1,12 +1,12 @@
-"""The held-out guard: the controller tune writes completes every run on plants the study never saw.
+"""The held-out guard: the controller tune writes completes every run on held-out draws.
 
 The study ranks its trials on its own plant draws. A trial can be best there and still go
 unstable on another plant of the same box: fleet plant 1 read as a model, ``tune --seed 3``, had
 its two best trials abort on a held-out draw (docs/tuning.md). Before controller.yaml is written,
 :func:`guarded_best` scores the :data:`GUARD_TRIALS` best complete trials, best first, on guard
-draws (the model's box with the seed ``seed + GUARD_SEED_OFFSET``: new plants and new sensor
-noise, neither the study's draws nor report.md's held-out ones) and keeps the first whose every
-run completes.
+draws (the model's box with the seed ``seed + GUARD_SEED_OFFSET``: new sensor noise and new
+Latin-hypercube plants beside the nominal plant and the two corners, which every set of draws
+has) and keeps the first whose every run completes.
 
 Only a failure moves the choice, never a better score on the guard draws: re-ranking the five
 best by their held-out objective picked a worse controller on the true plant four times in
@@ -61,10 +61,10 @@ class GuardResult:
         failed = "; ".join(f"trial #{n}: {why}" for n, why in self.rejected)
         if self.passed:
             return [f"held-out guard (seed {self.seed}): the study's better trials fail a run on "
-                    f"plants the study never saw ({failed}); trial #{self.trial.number} "
+                    f"held-out draws ({failed}); trial #{self.trial.number} "
                     f"(objective {self.trial.value:.4g}) completes every run and is kept"]
         return [f"held-out guard (seed {self.seed}): none of the {len(self.rejected)} best "
-                f"trials completes every run on plants the study never saw ({failed}); the "
+                f"trials completes every run on held-out draws ({failed}); the "
                 f"study's best is kept. The model's ranges may hold plants these gains cannot "
                 f"hold: check plant-worst.yaml, or tune with more trials or another --seed"]
 
