@@ -367,8 +367,11 @@ def tune(model: Any, settings: TuneSettings | None = None,
         scratch = tempfile.TemporaryDirectory(prefix="pneutune-tune-")
         storage = str(Path(scratch.name) / DEFAULT_JOURNAL)
     storage_scheme(storage)  # an unknown scheme is bad input before any simulation
+    # threads for a trial's draws: every CPU with one worker; the selection runs after the
+    # workers have exited, so it may use every CPU whatever their number
+    all_cpus = min(available_cpus(), settings.objective.n_draws)
     jobs = settings.jobs if settings.jobs is not None else (
-        min(available_cpus(), settings.objective.n_draws) if settings.workers == 1 else 1)
+        all_cpus if settings.workers == 1 else 1)
     dead_zone = settings.objective.dead_zone
 
     def make(params: dict[str, float]) -> ControllerConfig:
@@ -390,9 +393,7 @@ def tune(model: Any, settings: TuneSettings | None = None,
     if settings.restarts > 1:
         if notes is not None:
             notes(f"scoring the {settings.restarts} restarts' controllers on selection draws")
-        # the workers have exited: the selection may use every CPU
-        sel_jobs = settings.jobs if settings.jobs is not None else min(
-            available_cpus(), settings.objective.n_draws)
+        sel_jobs = settings.jobs if settings.jobs is not None else all_cpus
         selection = select([Candidate(a.seed, a.study_name, a.guard.trial,
                                       finished=finished(a.run.counts_after),
                                       this_run=finished(a.run.counts_after)

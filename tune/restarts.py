@@ -223,13 +223,13 @@ def select(candidates: Sequence[Candidate], objectives: Sequence[TuneObjective],
             failure = failure or ev.failure
         costs.append(per_set)
         failures.append(failure)
+    # per selection set, the runs every candidate completed
+    completed = [{k for k in costs[0][j] if all(per[j].get(k) is not None for per in costs)}
+                 for j in range(len(objectives))]
     scored = []
     for i, c in enumerate(candidates):
-        values = []
-        for j, obj in enumerate(objectives):
-            completed = {k for k in costs[i][j]
-                         if all(costs[m][j].get(k) is not None for m in range(len(candidates)))}
-            values.append(common_score(costs[i][j], completed, obj.settings.cvar_alpha))
+        values = [common_score(costs[i][j], completed[j], obj.settings.cvar_alpha)
+                  for j, obj in enumerate(objectives)]
         failed = sum(v is None for per_set in costs[i] for v in per_set.values())
         score = float(np.mean(values)) if values and not any(math.isnan(v) for v in values) \
             else math.nan
