@@ -5,6 +5,10 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 SEED   ?= 1
 TRIALS ?= 200
+# pytest-xdist workers for make test / test-slow (auto: one per core; 0 runs in one process).
+# A test file stays on one worker (--dist loadfile), so its module fixtures are built once.
+TEST_WORKERS ?= auto
+PYTEST := $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 .PHONY: demo test test-slow lint bench data clean-venv
 
@@ -36,11 +40,11 @@ demo: $(STAMP)
 
 ## test: the default test suite (slow tests excluded)
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(PYTEST)
 
 ## test-slow: only the tests marked slow
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(PYTEST) -m slow
 
 ## lint: ruff, and the import layers of pneutune.control (import-linter, pyproject.toml)
 lint: $(STAMP)
