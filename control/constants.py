@@ -30,6 +30,11 @@ RIG_KEYS: tuple[str, ...] = (
 #: may give that no log can measure well. ``mass``: the total moving mass [kg] (datasheet plus
 #: payload), from which ``identify`` takes its prior range when the log cannot resolve it.
 RIG_HINT_KEYS: tuple[str, ...] = ("mass",)
+#: The range each hint of :data:`RIG_HINT_KEYS` must lie in, and its unit. The moving mass:
+#: from 1 g (the piston and rod of the smallest cylinders weigh a few grams; the simulator's
+#: step shrinks with the mass, so a mass far below any cylinder's would never finish) to
+#: 1000 kg (the plant contract's bound).
+RIG_HINT_RANGES: dict[str, tuple[float, float, str]] = {"mass": (1.0e-3, 1.0e3, "kg")}
 #: Allowed values of ``rig.pwm_update``.
 PWM_UPDATE_MODES: tuple[str, str] = ("immediate", "latched")
 

@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from pneutune.control.constants import RIG_HINT_KEYS, RIG_KEYS, VALVES
+from pneutune.control.constants import RIG_HINT_KEYS, RIG_HINT_RANGES, RIG_KEYS, VALVES
 from pneutune.control.contracts.atomic import atomic_write_text
 from pneutune.control.contracts.json_schemas import json_schema
 from pneutune.control.logs.topics import REQUIRED_TOPICS, TOPIC_SPECS
@@ -141,7 +141,9 @@ def log_block() -> str:
     """The run log's tables: the ``rig`` metadata keys, then each topic's fields."""
     parts = [_table([(f"`{k}`", "decimal string" if k != "pwm_update" else
                       "`immediate` or `latched`", "required") for k in RIG_KEYS]
-                    + [(f"`{k}`", "decimal string", "optional hint") for k in RIG_HINT_KEYS],
+                    + [(f"`{k}`", "decimal string",
+                        f"optional hint, {RIG_HINT_RANGES[k][0]:g} to {RIG_HINT_RANGES[k][1]:g} "
+                        f"{RIG_HINT_RANGES[k][2]}") for k in RIG_HINT_KEYS],
                     ("`rig` key", "value", "")),
              ""]
     for topic, spec in TOPIC_SPECS.items():

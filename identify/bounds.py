@@ -111,7 +111,9 @@ def theta_bounds(*, mass: float, mass_range: tuple[float, float], mass_basis: st
         excess = max(excess, STICTION_PRIOR * F_C)
     half_Af = max(Z * sd[2] + excess + low_speed_margin[1], MIN_HALF["A_f"])
     half_D = np.maximum(Z * np.asarray(D_std), MIN_HALF["D"])
-    nominal = np.array([mass, Fn, bv, Af, D[0], D[1]])
+    # θ3 slightly below zero (within its uncertainty: pipeline.check_force_balance refuses
+    # more) is a viscous term too small to see; its nominal sits at the bound, zero
+    nominal = np.array([mass, Fn, max(bv, 0.0), Af, D[0], D[1]])
     lo = np.array([mass_range[0], Fn - half_Fn, bv - half_bv, Af - half_Af,
                    D[0] - half_D[0], D[1] - half_D[1]])
     hi = np.array([mass_range[1], Fn + half_Fn, bv + half_bv, Af + half_Af,

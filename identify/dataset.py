@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from scipy.signal import savgol_filter
 
 from pneutune.control.constants import RIG_KEYS, VALVES
@@ -37,6 +38,24 @@ from .run_record import run_record
 P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5
 #: How far outside the stroke a position reading may be before it is implausible [m].
 X_MARGIN = 2.0e-3
+#: :func:`regular_samples` fills runs of at most this many missing sensor samples, when the
+#: missing and duplicated samples together are at most :data:`REPAIR_SHARE` of the log.
+MAX_FILL, REPAIR_SHARE = 3, 0.01
+#: The longest stretch without a ``/rig/valves`` message, in control periods (rig.Ts), that
+#: :func:`check_valve_coverage` accepts (duties are written once per control period or more
+#: often; the margin takes timing jitter).
+VALVE_GAP = 1.5
+#: A chamber pressure whose readings span less than this over a whole log in which a valve of
+#: its chamber was commanded at least :data:`STUCK_DUTY` is stuck [Pa] (0.01 bar: a duty of
+#: one half opens a valve for 8 ms a PWM period, which moves a chamber by tenths of a bar).
+STUCK_SPAN, STUCK_DUTY = 1.0e3, 0.5
+#: Chamber readings more than this above the highest supply reading [Pa], in more than
+#: :data:`ABOVE_SUPPLY_SHARE` of the samples, show a wrong supply reading (a chamber fed
+#: through the valves stays below the supply, but for compression by the load).
+ABOVE_SUPPLY, ABOVE_SUPPLY_SHARE = 0.3e5, 0.01
+#: The rig metadata's supply pressure and the supply reading may differ by this fraction of
+#: the gauge supply before identify notes it (:func:`supply_note`).
+SUPPLY_MISMATCH = 0.05
 #: Period of the fit / held-out interleave [s] (Dataset.split): at least a 2 s validation
 #: window held out in each.
 HOLDOUT_BLOCK = 10.0
@@ -95,6 +114,9 @@ class Dataset:
     run_record : dict or None
         model.yaml's ``source.run`` of the log
         (:func:`~pneutune.identify.run_record.run_record`), or None (a pool of logs).
+    repairs : str
+        What :func:`regular_samples` did to the sensor samples (dropped duplicates, filled
+        missing samples), or "" when they came evenly spaced.
     """
 
     path: str
@@ -116,6 +138,7 @@ class Dataset:
     stopped_in: str = ""
     selection: str = ""
     run_record: dict[str, Any] | None = None
+    repairs: str = ""
 
     @property
     def n(self) -> int:
@@ -155,7 +178,8 @@ class Dataset:
                        mass_hint=self.mass_hint, scenario=self.scenario,
                        segments=self.segments, experiment=self.experiment,
                        run_status=self.run_status, stopped_in=self.stopped_in,
-                       selection=self.selection, run_record=self.run_record)
+                       selection=self.selection, run_record=self.run_record,
+                       repairs=self.repairs)
 
     @property
     def duration(self) -> float:
@@ -241,17 +265,20 @@ def _velocity(x: np.ndarray, h: float) -> np.ndarray:
     return savgol_filter(x, win, SG_ORDER, deriv=1, delta=h)
 
 
-def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None) -> None:
-    """Unit and range checks that the reader does not do.
+def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None,
+                    sensors: pd.DataFrame | None = None) -> None:
+    """Unit and range checks that the reader does not do (on ``sensors`` when given: the
+    log's ``/rig/sensors`` as :func:`regular_samples` repaired it).
 
     Raises
     ------
     IdentificationError
         Pressures outside about 0.5-12 bar absolute (gauge pressure or bar instead of Pa?),
         positions outside the stroke (mm instead of m?), duties outside 0..1, irregular
-        sampling, sensors and valves not on the same samples.
+        sampling, sensors and valves not on the same samples, a chamber pressure that never
+        moves although its valves open, chambers above the supply reading.
     """
-    s = log["/rig/sensors"]
+    s = log["/rig/sensors"] if sensors is None else sensors
     v = log["/rig/valves"]
     name = log.path
     for col in ("p_a", "p_b", "p_s"):
@@ -284,12 +311,165 @@ def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None) ->
         raise IdentificationError(
             name, f"/rig/sensors is not sampled every {what} = {period} s: samples at "
             f"t = {t[k]:.6f} s and {t[k + 1]:.6f} s are {dt[k]:.6g} s apart (gaps or a "
-            f"different sampling period)")
+            f"different sampling period; identify fills runs of up to {MAX_FILL} missing "
+            f"samples and drops duplicates when they are at most {REPAIR_SHARE:.0%} of the "
+            "log: cut a longer gap out by splitting the log in two, which identify reads "
+            "together)")
+    check_valve_coverage(name, t, v.index.to_numpy(), rig.Ts)
+    check_pressures_respond(name, s, v)
 
 
-def _align(log: RunLog) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def check_pressures_respond(name: str, s: pd.DataFrame, v: pd.DataFrame) -> None:
+    """The chamber readings move when their valves open, and stay below the supply reading.
+
+    Raises
+    ------
+    IdentificationError
+        A chamber pressure spans less than :data:`STUCK_SPAN` over the log although a valve
+        of its chamber was commanded at :data:`STUCK_DUTY` or more (a stuck, disconnected or
+        swapped-out sensor); or the chambers read more than :data:`ABOVE_SUPPLY` above the
+        highest supply reading in more than :data:`ABOVE_SUPPLY_SHARE` of the samples.
+    """
+    for col, ch in (("p_a", "a"), ("p_b", "b")):
+        p = s[col].to_numpy(dtype=float)
+        span = float(p.max() - p.min())
+        duty = float(max(v[f"u_{ch}_in"].max(), v[f"u_{ch}_out"].max()))
+        if span < STUCK_SPAN and duty >= STUCK_DUTY:
+            raise IdentificationError(
+                name, f"/rig/sensors.{col} stays within {span:.3g} Pa of "
+                f"{float(np.median(p)) / 1e5:.4g} bar over the whole log although chamber "
+                f"{ch.upper()}'s valves are commanded up to duty {duty:.2g}: a stuck, "
+                "disconnected or mislabelled pressure sensor")
+    ps_max = float(s["p_s"].max())
+    chamber = np.maximum(s["p_a"].to_numpy(dtype=float), s["p_b"].to_numpy(dtype=float))
+    above = chamber > ps_max + ABOVE_SUPPLY
+    if above.mean() > ABOVE_SUPPLY_SHARE:
+        raise IdentificationError(
+            name, f"the chambers read up to {chamber.max() / 1e5:.4g} bar, more than "
+            f"{ABOVE_SUPPLY / 1e5:g} bar above the highest supply reading /rig/sensors.p_s "
+            f"({ps_max / 1e5:.4g} bar) in {above.mean():.0%} of the samples; chambers fed "
+            "through the valves stay below the supply, so the supply reading is wrong (a "
+            "stuck or disconnected sensor, another signal, or gauge pressure)")
+
+
+def supply_note(data: Dataset, name: str | None = None) -> str | None:
+    """A note when the rig metadata's ``p_s`` and the supply reading disagree.
+
+    The fits use the measured supply; model.yaml keeps ``rig.p_s`` from the metadata, which
+    the controller and the tuner's simulations use. A gap of more than
+    :data:`SUPPLY_MISMATCH` of the gauge supply is worth a look (gauge instead of absolute
+    pressure in the metadata, or a regulator set since).
+
+    Returns
+    -------
+    str or None
+    """
+    measured = float(np.median(data.p_s))
+    rig = data.rig
+    if abs(measured - rig.p_s) <= SUPPLY_MISMATCH * max(rig.p_s - rig.p0, 1.0):
+        return None
+    where = f" in {name}" if name else ""
+    return (f"supply: the rig metadata gives p_s = {rig.p_s / 1e5:.4g} bar absolute but the "
+            f"supply reading{where} has a median of {measured / 1e5:.4g} bar; the fits use the "
+            f"reading, model.yaml keeps the metadata's p_s for the controller and the tuner "
+            f"(gauge pressure in the metadata, or a regulator set since the log?)")
+
+
+def check_valve_coverage(name: str, t_sensors: np.ndarray, t_valves: np.ndarray,
+                         Ts: float) -> None:
+    """The duties are known at every sensor sample: ``/rig/valves`` has a message at least
+    once per control period from the first sensor sample to the last.
+
+    Each sample takes the duties of the last valve message (zero-order hold), so valves
+    logged every sample or every control period both work; a valve topic that stops early,
+    starts late or skips control periods would hold stale commands there.
+
+    Raises
+    ------
+    IdentificationError
+        A stretch of more than :data:`VALVE_GAP` control periods without a valve message,
+        naming where.
+    """
+    limit = VALVE_GAP * Ts
+    start, end = float(t_sensors[0]), float(t_sensors[-1])
+    k = np.searchsorted(t_valves, t_sensors + 1e-9, side="right") - 1
+    since = np.where(k >= 0, t_valves[np.clip(k, 0, None)], start)
+    age = t_sensors - since
+    if not np.any(age > limit):
+        return
+    a = float(since[int(np.argmax(age > limit))])
+    later = t_valves[t_valves > a + 1e-9]
+    b = float(later[0]) if later.size and later[0] <= end else end
+    raise IdentificationError(
+        name, f"/rig/valves has no message from t = {a:.6f} s to {b:.6f} s ({b - a:.6g} s) "
+        f"while /rig/sensors runs from {start:.6f} s to {end:.6f} s; the commanded duties "
+        f"must be logged at least once per control period (rig.Ts = {Ts:g} s), or the "
+        "commands there are unknown (a valve topic cut short, or logged only on change?)")
+
+
+def regular_samples(s: pd.DataFrame, period: float) -> tuple[pd.DataFrame, str]:
+    """``/rig/sensors`` with the few slips of a real logger repaired, and what was done.
+
+    A sample logged twice (the next less than a quarter period later) keeps its later copy; a
+    run of up to :data:`MAX_FILL` missing samples (a step of a whole number of periods) is
+    filled by linear interpolation in time. Both are done only when the samples dropped and
+    filled add up to at most :data:`REPAIR_SHARE` of the log, and every other step is within
+    a quarter period of ``period``; otherwise ``s`` is returned as it is, for
+    :func:`check_plausible` to refuse.
+
+    Parameters
+    ----------
+    s : DataFrame
+        ``/rig/sensors``, indexed by time [s].
+    period : float
+        The sampling period [s].
+
+    Returns
+    -------
+    DataFrame, str
+        The samples, and a note of the repairs ("" when none were needed or possible).
+    """
+    t = s.index.to_numpy()
+    if t.size < 3:
+        return s, ""
+    dup = np.diff(t) < 0.25 * period
+    if dup.any():
+        kept = s.iloc[np.flatnonzero(np.r_[~dup, True])]
+    else:
+        kept = s
+    tk = kept.index.to_numpy()
+    dt = np.diff(tk)
+    k = np.rint(dt / period)
+    if np.any(k < 1) or np.any(np.abs(dt - k * period) > 0.25 * period):
+        return s, ""
+    missing = (k - 1).astype(int)
+    n_dup, n_missing = int(dup.sum()), int(missing.sum())
+    if (n_dup == 0 and n_missing == 0) or missing.max() > MAX_FILL \
+            or n_dup + n_missing > REPAIR_SHARE * t.size:
+        return s, ""
+    # each step of k periods gives its start and k - 1 evenly spaced times after it
+    j = np.arange(MAX_FILL + 1)[None, :]
+    steps = tk[:-1, None] + dt[:, None] * (j / k[:, None])
+    times = np.r_[steps[j < k[:, None]], tk[-1]]
+    values = {c: np.interp(times, tk, kept[c].to_numpy(dtype=float)) for c in kept.columns}
+    out = pd.DataFrame(values, index=pd.Index(times, name=s.index.name))
+    gaps = np.flatnonzero(missing)
+    said = []
+    if n_missing:
+        said.append(f"{n_missing} missing sample(s) in {gaps.size} gap(s) (the first after "
+                    f"t = {tk[gaps[0]]:.6f} s) filled by linear interpolation")
+    if n_dup:
+        first = t[int(np.argmax(dup))]
+        said.append(f"{n_dup} duplicated sample(s) dropped, the later copy kept (the first "
+                    f"at t = {first:.6f} s)")
+    return out, "sampling: /rig/sensors " + "; ".join(said) + " (a logger's slips; the fits " \
+        "see the repaired samples)"
+
+
+def _align(log: RunLog, sensors: pd.DataFrame | None = None,
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sensor times and the duties in force at each sensor sample (zero-order hold)."""
-    s = log["/rig/sensors"]
+    s = log["/rig/sensors"] if sensors is None else sensors
     v = log["/rig/valves"]
     ts = s.index.to_numpy()
     tv = v.index.to_numpy()
@@ -321,8 +501,9 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
     path = log.path
     rig = _rig_from_log(log)
     h = sample_period(log, rig)
-    check_plausible(log, rig, h)
-    t, sens, u = _align(log)
+    sensors, repairs = regular_samples(log["/rig/sensors"], h)
+    check_plausible(log, rig, h, sensors)
+    t, sens, u = _align(log, sensors)
     x = sens[:, 0]
     return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
                    p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h,
@@ -331,7 +512,8 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
                    experiment=str(log.run.get("experiment", "")),
                    run_status=str(log.run.get("status", "")),
                    stopped_in=str(log.run.get("stopped_in", "")),
-                   selection=str(log.run.get("segments", "")), run_record=run_record(log))
+                   selection=str(log.run.get("segments", "")), run_record=run_record(log),
+                   repairs=repairs)
 
 
 def _check_read_log(log: RunLog) -> None:

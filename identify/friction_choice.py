@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from .bounds import ThetaBounds
+from .bounds import MIN_HALF, ThetaBounds, Z
 from .dataset import Dataset, IdentificationError, Pool
 from .friction_prior import PriorFriction
 from .motion import FrictionIdentifier
@@ -76,6 +76,41 @@ def fit_friction(data: Dataset, fit: np.ndarray, mass: float, partial: bool,
                      f"from the rig's geometry and supply; the cross-check narrows b_v and F_n "
                      f"where the log rules their ends out")
         return prior
+
+
+def check_force_balance(name: str, friction: FrictionIdentifier,
+                        smooth_boot: np.ndarray) -> None:
+    """Refuse logs whose force balance runs backwards.
+
+    The smooth model's viscous coefficient θ3 is the force per unit speed the pressures spend
+    on friction; it cannot be negative. A value below zero by more than its uncertainty means
+    the measured pneumatic force opposes the motion it drives: the chamber pressures swapped,
+    a pressure reading stuck, or the areas of the rig metadata wrong. The bounds would then be
+    built on a contradiction, so identification stops and says what to check.
+
+    Parameters
+    ----------
+    name : str
+        The log(s) as error messages give them.
+    friction : FrictionIdentifier
+        The friction fit.
+    smooth_boot : ndarray (B, 3)
+        Bootstrap replicates of its smooth θ2..θ4.
+
+    Raises
+    ------
+    IdentificationError
+        θ3 below ``-max(Z s.e., MIN_HALF["b_v"])``.
+    """
+    bv = float(friction.smooth_[1])
+    sd = float(np.std(smooth_boot[:, 1], ddof=1)) if len(smooth_boot) > 1 else 0.0
+    if bv < -max(Z * sd, MIN_HALF["b_v"]):
+        raise IdentificationError(
+            name, f"the force balance runs backwards: the friction fit gives a viscous "
+            f"coefficient θ3 = {bv:.4g} N s/m (bootstrap s.e. {sd:.3g}), which cannot be "
+            "negative: the pneumatic force A_a p_a - A_b p_b - A_r p0 pushes against the "
+            "motion it drives; check that p_a is chamber A (rodless side) and p_b chamber B "
+            "(rod side), that no pressure reading is stuck, and the rig metadata's A_a and A_b")
 
 
 def friction_disagreements(pl: Pool, fit: np.ndarray, mass: float) -> list[str]:

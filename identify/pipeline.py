@@ -43,6 +43,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from pneutune.control.constants import RIG_HINT_RANGES
 from pneutune.control.contracts.model import ModelConfig
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError, argument_error
@@ -52,8 +53,14 @@ from pneutune.control.sim.scenarios import SCENARIOS
 from .bounds import FrictionFit, ThetaBounds, theta_bounds
 from .coverage import Coverage, coverage, lacks_mass_segments
 from .crosscheck import CrossCheck, cross_check, narrowed_model
-from .dataset import Dataset, Pool, display_names, load_datasets, pool
-from .friction_choice import fit_friction, friction_disagreements, low_speed_margin, prior_theta
+from .dataset import Dataset, Pool, display_names, load_datasets, pool, supply_note
+from .friction_choice import (
+    check_force_balance,
+    fit_friction,
+    friction_disagreements,
+    low_speed_margin,
+    prior_theta,
+)
 from .friction_prior import PriorFriction
 from .mass import LagMassIdentifier
 from .mass_choice import choose_mass
@@ -151,11 +158,13 @@ def check_arguments(holdout: float, mass: float | None, mass_tol: float) -> None
     Raises
     ------
     ExperimentError
-        ``holdout`` outside [0.05, 0.5], ``mass`` outside (0, 1000] kg, ``mass_tol`` outside
-        [0, 1).
+        ``holdout`` outside [0.05, 0.5], ``mass`` outside the ``rig.mass`` hint's range
+        (``RIG_HINT_RANGES``: 1 g to 1000 kg), ``mass_tol`` outside [0, 1).
     """
-    if mass is not None and not 0.0 < mass <= 1000.0:
-        raise argument_error(ExperimentError, "mass", f"must be in (0, 1000] kg, got {mass}")
+    m_lo, m_hi, _ = RIG_HINT_RANGES["mass"]
+    if mass is not None and not m_lo <= mass <= m_hi:
+        raise argument_error(ExperimentError, "mass",
+                             f"must be in [{m_lo:g}, {m_hi:g}] kg, got {mass}")
     if not 0.0 <= mass_tol < 1.0:
         raise argument_error(ExperimentError, "mass_tol", f"must be in [0, 1), got {mass_tol}")
     if not 0.05 <= holdout <= 0.5:
@@ -270,8 +279,12 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     covs = tuple(coverage(d, n) for d, n in zip(full, names, strict=True))
     partial = any(c is not None and c.partial for c in covs)
     notes: list[str] = [c.summary() for c in covs if c is not None and c.partial]
+    notes += [d.repairs + (f" in {n}" if several else "")
+              for d, n in zip(full, names, strict=True) if d.repairs]
     for d, n in zip(ctrl, names, strict=True):
         notes += _scenario_notes(d, n if several else None)
+        if (note := supply_note(d, n if several else None)) is not None:
+            notes.append(note)
     members = pool_members(ctrl, names, notes)
     pl = pool([ctrl[j] for j in members], [names[j] for j in members])
     data = pl.data
@@ -298,6 +311,8 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     if len(pl.spans) > 1 and not isinstance(friction, PriorFriction):
         notes += friction_disagreements(pl, fit, M)
     boot = friction.smooth_bootstrap(n_boot=300, block=50, seed=seed)
+    if not isinstance(friction, PriorFriction):
+        check_force_balance(", ".join(names), friction, boot)
     theta = theta_bounds(
         mass=M, mass_range=M_range, mass_basis=M_basis,
         friction=FrictionFit(smooth=friction.smooth_, smooth_boot=boot,

@@ -260,3 +260,55 @@ def test_json_and_outputs(tmp_path):
         curves.append(ratio)
     np.testing.assert_allclose(model.pwm.ratio, np.maximum.accumulate(np.mean(curves, axis=0)),
                                atol=1e-6)
+
+
+def test_mass_below_any_cylinder_is_refused(tmp_path):
+    """--mass takes the rig.mass hint's range (1 g to 1000 kg): a nanogram mass would make
+    every simulation of the model take steps of femtoseconds (the run never ends)."""
+    line = _one_error_line(_identify(RUN, "--mass", "1e-9", "--out", tmp_path / "o"))
+    assert "--mass" in line and "[0.001, 1000] kg" in line
+
+
+def test_stuck_chamber_sensor(tmp_path, source):
+    """A chamber pressure that never moves while its valves open is a sensor fault, refused
+    before any fit (the fits would otherwise turn it into nonsense friction)."""
+    def edit(topic, t, cols):
+        if topic == "/rig/sensors":
+            cols["p_a"][:] = 3.5e5
+        return t, cols
+
+    bad = _write(tmp_path / "stuck.mcap", source, edit=edit)
+    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    assert "/rig/sensors.p_a" in line and "stuck" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_supply_reading_below_the_chambers(tmp_path, source):
+    """A supply reading at ambient while the chambers reach several bar: the supply sensor
+    is wrong, and the valve fits (which use it) would be too."""
+    def edit(topic, t, cols):
+        if topic == "/rig/sensors":
+            cols["p_s"][:] = 1.01325e5
+        return t, cols
+
+    bad = _write(tmp_path / "supply.mcap", source, edit=edit)
+    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    assert "supply reading" in line and "1.013 bar" in line
+
+
+@pytest.mark.parametrize("how", ["cut short", "every fourth control period"])
+def test_valve_commands_missing(tmp_path, source, how):
+    """Duties must be known at every sample: a valve topic that stops early, or skips control
+    periods, is refused with where the commands are missing."""
+    def edit(topic, t, cols):
+        if topic != "/rig/valves":
+            return t, cols
+        if how == "cut short":
+            keep = t < 0.5 * t[-1]
+        else:  # the log samples every 0.5 ms: one message in 32 is one every 16 ms
+            keep = np.arange(t.size) % 32 == 0
+        return t[keep], {c: v[keep] for c, v in cols.items()}
+
+    bad = _write(tmp_path / "valves.mcap", source, edit=edit)
+    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    assert "/rig/valves has no message from" in line and "once per control period" in line

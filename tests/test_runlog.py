@@ -331,18 +331,22 @@ def test_nonfinite_is_written_as_null_and_rejected(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("payload", "field"),
+    ("payload", "field", "what"),
     [
-        (b'{"x":null,"p_a":1.0,"p_b":1.0,"p_s":1.0}', "x"),
-        (b'{"x":0.0,"p_a":NaN,"p_b":1.0,"p_s":1.0}', "p_a"),  # non-standard token
-        (b'{"x":0.0,"p_a":1.0,"p_b":-Infinity,"p_s":1.0}', "p_b"),
-        (b'{"x":0.0,"p_a":1.0,"p_b":1.0,"p_s":1e999}', "p_s"),  # overflows to inf
-        (b'{"p_s":1.0,"x":0.0,"p_a":1.0,"p_b":null}', "p_b"),  # other key order
+        (b'{"x":null,"p_a":1.0,"p_b":1.0,"p_s":1.0}', "x", "(null or NaN)"),
+        (b'{"x":0.0,"p_a":NaN,"p_b":1.0,"p_s":1.0}', "p_a", "(null or NaN)"),  # non-standard
+        (b'{"x":0.0,"p_a":1.0,"p_b":-Infinity,"p_s":1.0}', "p_b", "(-Infinity"),
+        (b'{"x":0.0,"p_a":1.0,"p_b":1.0,"p_s":1e999}', "p_s", "(+Infinity"),  # overflows
+        (b'{"p_s":1.0,"x":0.0,"p_a":1.0,"p_b":null}', "p_b", "(null or NaN)"),  # key order
     ],
 )
-def test_nonfinite_from_other_writers(tmp_path: Path, payload: bytes, field: str) -> None:
+def test_nonfinite_from_other_writers(tmp_path: Path, payload: bytes, field: str,
+                                      what: str) -> None:
+    """The message names the field, the time and what the file holds (the command line has
+    no allow_nonfinite, so the message does not tell the user to pass it)."""
     path = write_raw(tmp_path / "nf.mcap", minimal([("/rig/sensors", 8_000_000, payload)]))
-    expect(NonFiniteValueError, path, f"/rig/sensors: {field} ", "t=0.008000000 s")
+    err = expect(NonFiniteValueError, path, f"/rig/sensors: {field} ", "t=0.008000000 s", what)
+    assert "pass allow_nonfinite" not in str(err)
 
 
 def test_nonfinite_theta_hat_names_the_element(tmp_path: Path) -> None:

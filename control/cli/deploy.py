@@ -43,7 +43,7 @@ Rigs (--rig):
                       simulated rig needs them, a hardware driver may ignore them),
                       then CMD is split like a shell would (no shell runs). Its hello gives the
                       rig block (Ts and pwm_hz must equal the controller's); a driver that is
-                      not there, dies at once, sends a bad hello or none within 10 s is bad
+                      not there, dies at once, sends a bad hello or none within 60 s is bad
                       input (exit 2, with the driver's last stderr lines). A reply later than
                       2 s or an E reply during the run, or a driver that fails to start after
                       an earlier scenario ran, is a rig_io fault (exit 3).

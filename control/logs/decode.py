@@ -308,11 +308,15 @@ class TopicDecoder:
             label = name
             if name.startswith("theta_hat_"):
                 label = f"theta_hat[{name[-1]}]"
+            v = float(col[i])
+            what = ("null or NaN" if math.isnan(v) else
+                    f"{'+' if v > 0 else '-'}Infinity or a number beyond ±1.8e308")
             raise NonFiniteValueError(
                 self.file,
-                f"{self.spec.topic}: {label} is not finite ({col[i]!r}; null in the file) at "
+                f"{self.spec.topic}: {label} is not a finite number ({what}) at "
                 f"t={format_ns(self.ns[i])}, {int(bad.sum())} such value(s) in this field; "
-                "pass allow_nonfinite=True to read them as NaN",
+                "contract 1 wants finite numbers: repair or drop those messages (Python "
+                "callers may read them as NaN with read_run_log(..., allow_nonfinite=True))",
             )
 
 

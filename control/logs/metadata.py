@@ -13,7 +13,13 @@ import re
 
 from mcap.records import Metadata
 
-from pneutune.control.constants import LOG_SCHEMA, PWM_UPDATE_MODES, RIG_HINT_KEYS, RIG_KEYS
+from pneutune.control.constants import (
+    LOG_SCHEMA,
+    PWM_UPDATE_MODES,
+    RIG_HINT_KEYS,
+    RIG_HINT_RANGES,
+    RIG_KEYS,
+)
 from pneutune.control.errors import LogSchemaError, MissingMetadataError
 from pneutune.control.logs.topics import RIG_NUMBER_KEYS
 
@@ -23,7 +29,7 @@ _DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)
 
 
 def parse_rig_hints(file: str, records: list[Metadata]) -> dict[str, float]:
-    """The optional ``rig`` hints (``RIG_HINT_KEYS``), positive finite decimals.
+    """The optional ``rig`` hints (``RIG_HINT_KEYS``), decimals within ``RIG_HINT_RANGES``.
 
     Parameters
     ----------
@@ -41,7 +47,7 @@ def parse_rig_hints(file: str, records: list[Metadata]) -> dict[str, float]:
     Raises
     ------
     LogSchemaError
-        A hint is not a positive finite decimal number.
+        A hint is not a decimal number within its range.
     """
     raw = next(m for m in records if m.name == "rig").metadata
     out = {}
@@ -49,9 +55,10 @@ def parse_rig_hints(file: str, records: list[Metadata]) -> dict[str, float]:
         if key in raw:
             text = raw[key]
             value = float(text) if _DECIMAL.fullmatch(text) else math.nan
-            if not (math.isfinite(value) and value > 0.0):
+            lo, hi, unit = RIG_HINT_RANGES[key]
+            if not (math.isfinite(value) and lo <= value <= hi):
                 raise LogSchemaError(file, f"'rig' metadata key {key} = {text!r} is not a "
-                                     "positive decimal number")
+                                     f"decimal number of {unit} within [{lo:g}, {hi:g}]")
             out[key] = value
     return out
 

@@ -49,6 +49,7 @@ from pneutune.control.constants import (
     LOG_SCHEMA,
     PWM_UPDATE_MODES,
     RIG_HINT_KEYS,
+    RIG_HINT_RANGES,
     RIG_KEYS,
     VERSION,
 )
@@ -148,8 +149,11 @@ def _rig_metadata(rig: Mapping[str, Any]) -> dict[str, str]:
     for key in RIG_HINT_KEYS:
         if key in rig:
             value = rig[key]
-            if not _is_real(value) or not (math.isfinite(float(value)) and float(value) > 0):
-                raise ValueError(f"rig.{key} must be a positive finite number, got {value!r}")
+            lo, hi, unit = RIG_HINT_RANGES[key]
+            if not _is_real(value) or not (math.isfinite(float(value))
+                                           and lo <= float(value) <= hi):
+                raise ValueError(f"rig.{key} must be a number of {unit} within "
+                                 f"[{lo:g}, {hi:g}], got {value!r}")
             out[key] = repr(float(value))
     return out
 

@@ -59,7 +59,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from pneutune.control.constants import RIG_HINT_KEYS, RIG_KEYS
+from pneutune.control.constants import RIG_HINT_KEYS, RIG_HINT_RANGES, RIG_KEYS
 from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.contracts.yamlio import validation_error
 from pneutune.control.errors import PneutuneError
@@ -69,7 +69,10 @@ PROTOCOL = "pneutune.rig/1"
 DEFAULT_TIMEOUT = 2.0
 #: Default longest wait for the hello [s]: a driver program starts (a Python one imports its
 #: libraries, about 1 s for the example server on a busy 2-core machine) and opens its hardware.
-DEFAULT_STARTUP_TIMEOUT = 10.0
+#: The example server also builds its simulated plant before it answers, which compiles the
+#: plant's code when numba's cache does not hold it yet (after an install or an upgrade): up to
+#: half a minute on a loaded 2-core machine, measured at over 10 s.
+DEFAULT_STARTUP_TIMEOUT = 60.0
 #: Largest hello and error message [bytes].
 MAX_HELLO = 64 * 1024
 MAX_ERROR = 4096
@@ -171,9 +174,11 @@ def check_rig_block(rig: Mapping[str, Any], Ts: float) -> dict[str, float | str]
     for k in RIG_HINT_KEYS:
         if k in rig:
             v = rig[k]
+            lo, hi, unit = RIG_HINT_RANGES[k]
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (
-                    math.isfinite(v) and v > 0.0):
-                raise RigIOError(f"hello: rig.{k} must be a positive number, got {v!r}")
+                    math.isfinite(v) and lo <= v <= hi):
+                raise RigIOError(f"hello: rig.{k} must be a number of {unit} within "
+                                 f"[{lo:g}, {hi:g}], got {v!r}")
             out[k] = float(v)
     return out
 
