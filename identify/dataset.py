@@ -83,7 +83,7 @@ class Dataset:
     rig : RigConfig
         The ``rig`` metadata, validated.
     t : ndarray (N,)
-        Sample times [s].
+        Sample times [s], from the log's first sensor sample (log time minus that sample's).
     x, p_a, p_b, p_s : ndarray (N,)
         Sensors [m, Pa abs].
     u : ndarray (N, 4)
@@ -504,11 +504,16 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
     sensors, repairs = regular_samples(log["/rig/sensors"], h)
     check_plausible(log, rig, h, sensors)
     t, sens, u = _align(log, sensors)
+    # times from the first sensor sample: a log stamped in Unix time (as MCAP recorders do)
+    # would otherwise carry 1.7e9 s into the simulations, whose clocks then resolve only
+    # 0.2 us (a no-op for a log that starts at 0)
+    t0 = float(t[0])
+    t = t - t0
     x = sens[:, 0]
     return Dataset(path=str(path), sha256=log.sha256, rig=rig, t=t, x=x, p_a=sens[:, 1],
                    p_b=sens[:, 2], p_s=sens[:, 3], u=u, v=_velocity(x, h), sample_period=h,
                    mass_hint=log.rig_hints.get("mass"),
-                   scenario=str(log.run.get("scenario", "")), segments=_segments(log),
+                   scenario=str(log.run.get("scenario", "")), segments=_segments(log, t0),
                    experiment=str(log.run.get("experiment", "")),
                    run_status=str(log.run.get("status", "")),
                    stopped_in=str(log.run.get("stopped_in", "")),
@@ -530,12 +535,12 @@ def _check_read_log(log: RunLog) -> None:
                                       f"finite at log time {frame.index[row]:.6f} s")
 
 
-def _segments(log: RunLog) -> tuple[tuple[float, str, str], ...]:
-    """``/experiment/segment`` as (t, label, kind), or () when the log has none."""
+def _segments(log: RunLog, t0: float = 0.0) -> tuple[tuple[float, str, str], ...]:
+    """``/experiment/segment`` as (t - ``t0``, label, kind), or () when the log has none."""
     if not log.has("/experiment/segment"):
         return ()
     seg = log["/experiment/segment"]
-    return tuple((float(t), str(label), str(kind)) for t, label, kind in
+    return tuple((float(t) - t0, str(label), str(kind)) for t, label, kind in
                  zip(seg.index.to_numpy(), seg["label"], seg["kind"], strict=True))
 
 

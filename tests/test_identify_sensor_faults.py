@@ -125,3 +125,32 @@ def test_more_than_a_slip_is_left_for_the_check_to_refuse(cut):
     s = _sensors(np.delete(np.arange(1000) * Ts, cut))
     out, note = regular_samples(s, Ts)
     assert out is s and note == ""
+
+
+def test_unix_time_stamps_count_from_the_first_sample(tmp_path):
+    """MCAP recorders stamp messages in Unix time (here 2025-11-24, 1.764e9 s). identify
+    counts from the first sensor sample, so its simulations keep microsecond clocks: the
+    closed-loop log of the paper's rig stamped so gave the held-out NRMSE 0.062/0.060/0.027
+    (x/p_a/p_b) before, 0.006/0.015/0.017 after, as the log stamped from zero."""
+    from pneutune.control.contracts.plant import PlantConfig
+    from pneutune.control.logs.writer import RunLogWriter
+
+    n, Ts, epoch = 600, 4e-3, 1.764e9
+    k = np.arange(n)
+    t = epoch + k * Ts
+    wave = np.sin(2 * np.pi * 0.5 * k * Ts)
+    path = tmp_path / "unix.mcap"
+    with RunLogWriter(path, rig=PlantConfig().rig_metadata(), run={"seed": "1"}) as w:
+        w.write_many("/rig/sensors", t, {"x": 0.0235 + 0.0175 * wave,
+                                         "p_a": 3.5e5 + 1e5 * wave, "p_b": 3.5e5 - 1e5 * wave,
+                                         "p_s": np.full(n, 6e5)})
+        w.write_many("/rig/valves", t, {"u_a_in": np.clip(wave, 0, 1),
+                                        "u_a_out": np.clip(-wave, 0, 1),
+                                        "u_b_in": np.clip(-wave, 0, 1),
+                                        "u_b_out": np.clip(wave, 0, 1)})
+        for j, label in ((0, "first"), (300, "second")):
+            w.write("/experiment/segment", t[j], {"label": label, "kind": "hold", "params": {}})
+    d = load_dataset(path)
+    assert d.t[0] == 0.0
+    np.testing.assert_allclose(d.t, k * Ts, atol=1e-6)  # float seconds of 1.7e9: 0.24 us
+    assert [(round(s, 6), lab) for s, lab, _ in d.segments] == [(0.0, "first"), (1.2, "second")]
