@@ -63,6 +63,20 @@ def _one_error_line(res: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
+def _refusal(tmp_path, source, topic: str, change) -> str:
+    """identify's one error line on data/run.mcap with ``change(columns)`` applied to the
+    columns of ``topic``; nothing is written."""
+    def edit(tp, t, cols):
+        if tp == topic:
+            change(cols)
+        return t, cols
+
+    bad = _write(tmp_path / "edited.mcap", source, edit=edit)
+    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    assert str(bad) in line and not (tmp_path / "o" / "model.yaml").exists()
+    return line
+
+
 def test_not_mcap(tmp_path):
     bad = tmp_path / "notes.mcap"
     bad.write_text("not a log")
@@ -87,13 +101,7 @@ def test_missing_topic(tmp_path, source):
 
 
 def test_nan_value(tmp_path, source):
-    def edit(topic, t, cols):
-        if topic == "/rig/sensors":
-            cols["p_a"][1234] = np.nan
-        return t, cols
-
-    bad = _write(tmp_path / "nan.mcap", source, edit=edit)
-    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    line = _refusal(tmp_path, source, "/rig/sensors", lambda c: c["p_a"].__setitem__(1234, np.nan))
     assert "p_a" in line and "/rig/sensors" in line
 
 
@@ -159,25 +167,16 @@ def test_missing_rig_metadata_key(tmp_path, source):
 
 
 def test_pressures_in_bar_are_implausible(tmp_path, source):
-    def edit(topic, t, cols):
-        if topic == "/rig/sensors":
-            for c in ("p_a", "p_b", "p_s"):
-                cols[c] = cols[c] / 1e5
-        return t, cols
+    def to_bar(cols):
+        for c in ("p_a", "p_b", "p_s"):
+            cols[c] /= 1e5
 
-    bad = _write(tmp_path / "bar.mcap", source, edit=edit)
-    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    line = _refusal(tmp_path, source, "/rig/sensors", to_bar)
     assert "Pa" in line and "p_a" in line
 
 
 def test_valve_never_opens_is_not_identifiable(tmp_path, source):
-    def edit(topic, t, cols):
-        if topic == "/rig/valves":
-            cols["u_b_out"][:] = 0.0
-        return t, cols
-
-    bad = _write(tmp_path / "nobout.mcap", source, edit=edit)
-    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    line = _refusal(tmp_path, source, "/rig/valves", lambda c: c["u_b_out"].fill(0.0))
     assert "b_out" in line and "never" in line
 
 
@@ -272,27 +271,14 @@ def test_mass_below_any_cylinder_is_refused(tmp_path):
 def test_stuck_chamber_sensor(tmp_path, source):
     """A chamber pressure that never moves while its valves open is a sensor fault, refused
     before any fit (the fits would otherwise turn it into nonsense friction)."""
-    def edit(topic, t, cols):
-        if topic == "/rig/sensors":
-            cols["p_a"][:] = 3.5e5
-        return t, cols
-
-    bad = _write(tmp_path / "stuck.mcap", source, edit=edit)
-    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    line = _refusal(tmp_path, source, "/rig/sensors", lambda c: c["p_a"].fill(3.5e5))
     assert "/rig/sensors.p_a" in line and "stuck" in line
-    assert not (tmp_path / "o").exists()
 
 
 def test_supply_reading_below_the_chambers(tmp_path, source):
     """A supply reading at ambient while the chambers reach several bar: the supply sensor
     is wrong, and the valve fits (which use it) would be too."""
-    def edit(topic, t, cols):
-        if topic == "/rig/sensors":
-            cols["p_s"][:] = 1.01325e5
-        return t, cols
-
-    bad = _write(tmp_path / "supply.mcap", source, edit=edit)
-    line = _one_error_line(_identify(bad, "--out", tmp_path / "o"))
+    line = _refusal(tmp_path, source, "/rig/sensors", lambda c: c["p_s"].fill(1.01325e5))
     assert "supply reading" in line and "1.013 bar" in line
 
 
