@@ -142,6 +142,8 @@ BAD = [
     ("bad position_feedback", "position_feedback", "raw", "position_feedback", "measured"),
     ("bad schema", "schema", "pneutune.controller/2", "schema", "pneutune.controller/1"),
     ("limits x_max <= x_min", "limits.x_max", -0.01, "limits", "x_max > x_min"),
+    # a p_max below ambient passed, then deploy stopped at t = 0 with an "overpressure" fault
+    ("limits p_max <= p0", "limits.p_max", 5.0e4, "", "limits.p_max > rig.p0"),
     ("rig rule", "rig.A_b", 9e-3, "rig.A_b", "A_b <= A_a"),
     ("pid negative gain", "pid.kp", -1.0, "pid.kp", "greater than or equal to 0"),
 ]

@@ -46,6 +46,9 @@ BAD_FILES = [
     ("duplicate-key", "mass: 1.0\nmass: 2.0\n", "", "duplicate key 'mass'"),
     ("not-a-mapping", "- 1\n- 2\n", "", "expected a mapping"),
     ("invalid-yaml", "rig: {A_a: 1\n", "", "not valid YAML"),
+    # Python reads integers of at most 4300 digits; the parser's ValueError was a traceback
+    ("integer-of-5001-digits", "mass: " + "1" * 5001 + "\n", "",
+     "a value cannot be read as a number (Exceeds the limit (4300 digits)"),
 ]
 
 

@@ -182,3 +182,28 @@ def test_the_journal_is_fsynced_when_a_trial_ends(tmp_path: Path,
     assert [t.intermediate_values for t in again.trials] == [t.intermediate_values
                                                              for t in study.trials]
     assert [t.value for t in again.trials] == [t.value for t in study.trials]
+
+
+def test_an_interrupted_trial_leaves_no_traceback() -> None:
+    """Ctrl-C inside a trial: Optuna reports the trial with the traceback of the interrupted
+    simulation, then "Trial N failed with value None."; tune says "error: interrupted" itself,
+    so both are dropped, and other reports pass."""
+    import logging
+    import sys
+
+    from pneutune.tune.study import _NoInterruptTraceback
+
+    f = _NoInterruptTraceback()
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        info = sys.exc_info()
+
+    def record(msg: str, exc_info=None) -> logging.LogRecord:
+        return logging.LogRecord("optuna.study._optimize", logging.WARNING, __file__, 1, msg,
+                                 (), exc_info)
+
+    assert f.filter(record("Trial 3 failed with parameters: {}", info)) is False
+    assert f.filter(record("Trial 3 failed with value None.")) is False
+    assert f.filter(record("Trial 4 failed with value None.")) is True
+    assert f.filter(record("Trial 5 failed because of the following error: X")) is True

@@ -35,6 +35,7 @@ Pruning (``--pruner``): :mod:`pneutune.tune.pruners`.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import multiprocessing
 import os
 import time
@@ -255,9 +256,32 @@ def sampler_seed(seed: int, worker: int, n_existing: int) -> int:
                .generate_state(1)[0])
 
 
+class _NoInterruptTraceback(logging.Filter):
+    """Drop Optuna's report of a trial stopped by Ctrl-C (a traceback of the interrupted
+    simulation, then "Trial N failed with value None."): the command says ``error:
+    interrupted`` itself, and a resumed run redoes the trial."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._interrupted = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, KeyboardInterrupt):
+            self._interrupted = True
+            return False
+        if self._interrupted and "failed with value None" in record.getMessage():
+            self._interrupted = False
+            return False
+        return True
+
+
 def _quiet_optuna() -> None:
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+    log = logging.getLogger("optuna.study._optimize")  # where Optuna reports a failed trial
+    if not any(isinstance(f, _NoInterruptTraceback) for f in log.filters):
+        log.addFilter(_NoInterruptTraceback())
 
 
 def work(spec: StudySpec, model: ModelConfig, worker: int = 0,

@@ -276,6 +276,15 @@ class ControllerConfig(_Strict):
     limits: LimitsConfig
     provenance: ProvenanceConfig | None = None
 
+    @model_validator(mode="after")
+    def _check_limits(self) -> ControllerConfig:
+        # a chamber at rest holds ambient pressure: a p_max at or below it trips the
+        # supervisor's overpressure fault at the first sample, whatever the rig does
+        if not self.limits.p_max > self.rig.p0:
+            raise ValueError(f"limits.p_max > rig.p0 must hold (a chamber at rest is at ambient "
+                             f"pressure), got p_max={self.limits.p_max}, p0={self.rig.p0}")
+        return self
+
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form, as written to controller.yaml (tuples as lists; a valve without a
         curve of its own has no ``pwm`` key)."""
