@@ -100,6 +100,8 @@ def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(str(p), "", f"not valid YAML{where}: {problem}") from None
+    except ConfigError:  # _check_nodes' (a ValueError too), as it is
+        raise
     except ValueError as exc:  # a scalar the constructor cannot build (an integer of 4301 digits)
         reason = str(exc).split(";")[0]
         raise ConfigError(str(p), "", f"a value cannot be read as a number ({reason})") from None
