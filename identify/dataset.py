@@ -265,10 +265,9 @@ def _velocity(x: np.ndarray, h: float) -> np.ndarray:
     return savgol_filter(x, win, SG_ORDER, deriv=1, delta=h)
 
 
-def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None,
-                    sensors: pd.DataFrame | None = None) -> None:
-    """Unit and range checks that the reader does not do (on ``sensors`` when given: the
-    log's ``/rig/sensors`` as :func:`regular_samples` repaired it).
+def check_plausible(log: RunLog, sensors: pd.DataFrame, rig: RigConfig, period: float) -> None:
+    """Unit and range checks that the reader does not do, on ``sensors`` (the log's
+    ``/rig/sensors`` as :func:`regular_samples` repaired it) and the log's ``/rig/valves``.
 
     Raises
     ------
@@ -278,7 +277,7 @@ def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None,
         sampling, sensors and valves not on the same samples, a chamber pressure that never
         moves although its valves open, chambers above the supply reading.
     """
-    s = log["/rig/sensors"] if sensors is None else sensors
+    s = sensors
     v = log["/rig/valves"]
     name = log.path
     for col in ("p_a", "p_b", "p_s"):
@@ -298,7 +297,6 @@ def check_plausible(log: RunLog, rig: RigConfig, period: float | None = None,
         if lo < -1e-9 or hi > 1.0 + 1e-9:
             raise IdentificationError(
                 name, f"/rig/valves.{col} spans {lo:.6g}..{hi:.6g}; duties must be within 0..1")
-    period = rig.Ts if period is None else period
     t = s.index.to_numpy()
     if len(t) < 100:
         raise IdentificationError(name, f"/rig/sensors has {len(t)} samples; identification "
@@ -466,11 +464,9 @@ def regular_samples(s: pd.DataFrame, period: float) -> tuple[pd.DataFrame, str]:
         "see the repaired samples)"
 
 
-def _align(log: RunLog, sensors: pd.DataFrame | None = None,
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sensor times and the duties in force at each sensor sample (zero-order hold)."""
-    s = log["/rig/sensors"] if sensors is None else sensors
-    v = log["/rig/valves"]
+def _align(s: pd.DataFrame, v: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sensor times of ``s`` (``/rig/sensors``) and the duties of ``v`` (``/rig/valves``) in
+    force at each sensor sample (zero-order hold)."""
     ts = s.index.to_numpy()
     tv = v.index.to_numpy()
     cols = [f"u_{n}" for n in VALVES]
@@ -502,8 +498,8 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
     rig = _rig_from_log(log)
     h = sample_period(log, rig)
     sensors, repairs = regular_samples(log["/rig/sensors"], h)
-    check_plausible(log, rig, h, sensors)
-    t, sens, u = _align(log, sensors)
+    check_plausible(log, sensors, rig, h)
+    t, sens, u = _align(sensors, log["/rig/valves"])
     # times from the first sensor sample: a log stamped in Unix time (as MCAP recorders do)
     # would otherwise carry 1.7e9 s into the simulations, whose clocks then resolve only
     # 0.2 us (a no-op for a log that starts at 0)
