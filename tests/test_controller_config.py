@@ -187,7 +187,12 @@ def test_yaml_1_2_words_are_strings_and_aliases_are_refused(tmp_path: Path) -> N
     assert exc.value.key == "variant"
     lines = ["a: &x [1, 2]", "b: [*x, *x]", "c: [*x, *x]"]
     p.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    with pytest.raises(ConfigError, match=r"anchored \(&\) at line 1 .*not allowed"):
+    with pytest.raises(ConfigError, match=r"an anchor \(&x\) at line 1; .*not allowed"):
+        load_controller(p)
+    # an anchor nothing refers to is refused as well: a contract file has no use for one
+    p.write_text(text.replace("variant: modified_darc", "variant: &v modified_darc"),
+                 encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"an anchor \(&v\) at line \d+; "):
         load_controller(p)
 
 

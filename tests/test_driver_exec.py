@@ -181,6 +181,38 @@ def test_exec_late_reply_is_a_rig_io_fault(tmp_path, capsys):
     assert run.run["status"] == "fault" and list(run["/rig/events"]["code"]) == ["rig_io"]
 
 
+@pytest.mark.parametrize(("mode", "reply", "after", "last"),
+                         [("clock_nan", "A", "later than", "0.116"),  # 29 Ts, then the 30th A
+                          ("clock_back", "R", "at or after", "0.12")])  # R after 30 A
+def test_exec_broken_clock_is_a_rig_io_fault(mode, reply, after, last, tmp_path, capsys):
+    """A driver whose A reply carries t = NaN, or whose R reply runs its clock back (at sample
+    30, tests/drivers/broken_driver.py): a rig_io fault naming the reply and the time, the
+    fail-safe duties written through the driver (it still answers), the log kept, exit 3."""
+    log = tmp_path / "clock.mcap"
+    cmd = shlex.join(_broken(mode))
+    assert deploy_main([str(PAPER_YAML), "--rig", f"exec:{cmd}", "--duration", "1",
+                        "--log", str(log)]) == 3
+    errors = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "rig_io" in errors[0], errors
+    assert f"the driver's {reply} reply carries t = " in errors[0]
+    assert f"expected a finite time {after} the last one, {last} s" in errors[0]
+    assert "failed too" not in errors[0]
+    run = read_run_log(log)
+    assert run.run["status"] == "fault" and list(run["/rig/events"]["code"]) == ["rig_io"]
+
+
+@pytest.mark.parametrize("mode", ["clock_nan", "clock_back"])
+def test_check_catches_a_broken_clock(mode, capsys):
+    """The conformance check fails a NaN or backward time as ``clock`` (a read whose t runs
+    back also has sample times after its t, which ``sequence`` fails)."""
+    cmd = shlex.join(_broken(mode))
+    code = driver.main(["check", cmd, "--samples", "60", "--timeout", str(CHECK_TIMEOUT)])
+    out = capsys.readouterr().out
+    assert code == 1, out
+    expected = ["sequence", "clock"] if mode == "clock_back" else ["clock"]
+    assert re.findall(r"^FAIL  (\w+)", out, re.MULTILINE) == expected, out
+
+
 # --- driver check ----------------------------------------------------------------------------
 
 

@@ -25,6 +25,7 @@ from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
 from pneutune.control.contracts.model import LoggedRun, ModelConfig, load_model, save_model
 from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.errors import ConfigError
 from pneutune.control.logs.reader import read_run_log
 from pneutune.control.sim.truth import model_from_plant
 from pneutune.identify.pipeline import identify
@@ -298,3 +299,22 @@ def test_the_controller_that_ran_in_the_log_is_a_trial_of_the_study(
     assert trial["gains.h3"] == 150.0 and trial["adaptation.gamma.b_v"] == 3000.0
     q_over_r = logged.kalman.motion.Q / logged.kalman.motion.R
     assert trial["kalman.motion.Q"] / motion_R(model) == pytest.approx(q_over_r, rel=1e-12)
+
+
+@pytest.mark.parametrize(("edit", "key", "message"), [
+    (lambda src: src["run"].__setitem__("closed_loop", "maybe"), "source.run.closed_loop",
+     "expected true/false, got the string 'maybe'"),
+    (lambda src: src.pop("sha256"), "source.sha256", "required key is missing"),
+])
+def test_a_bad_source_names_the_files_key(logged: tuple[Path, Path], tmp_path: Path,
+                                          edit: Any, key: str, message: str) -> None:
+    """``source`` is one log's mapping or a list of them (a union to pydantic, which puts the
+    member's class name in the error's path and adds the other member's failure): the error
+    names the key as written in the file, ``source.run.closed_loop``, and counts one problem."""
+    data = _model(logged[0]).to_dict()
+    edit(data["source"])
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    with pytest.raises(ConfigError) as exc:
+        load_model(path)
+    assert (exc.value.key, exc.value.message) == (key, message)

@@ -188,7 +188,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         tr = summary["trials"]
         paper = result.comparison.paper.value
         info(f"study {summary['study']}: {tr['complete']} complete, {tr['pruned']} pruned, "
-             f"{tr['failed']} failed ({tr['this_run']} this run, {summary['wall_s']:.1f} s)")
+             f"{tr['failed']} failed ({tr['this_run']} this run, in {summary['wall_s']:.1f} s of "
+             "optimisation)")
         if summary["restarts"]:
             info(f"{len(summary['restarts'])} restarts in {summary['wall_s_restarts']:.1f} s; "
                  f"kept seed {summary['seed']}'s study")

@@ -170,7 +170,7 @@ def _check(opts: RecordOptions) -> None:
 def _open_rig(opts: RecordOptions) -> tuple[Any, dict[str, str], bool, int | None]:
     """The rig, its ``run`` metadata, whether it tells the truth, and the seed used (None for a
     driver whose command takes no ``{seed}``)."""
-    from pneutune.control.contracts.plant import load_plant
+    from pneutune.control.plant.params import load_sim_plant
     from pneutune.control.rig.deploy import parse_rig
     from pneutune.control.rig.exec_rig import ExecRig, PipeRig, exec_command
     from pneutune.control.rig.simrig import SimRig
@@ -198,7 +198,7 @@ def _open_rig(opts: RecordOptions) -> tuple[Any, dict[str, str], bool, int | Non
                                   f"but --sample-period asked for {asked!r} s (does its "
                                   f"command pass {{sample_period}} on?)")
         return rig, meta, False, seed
-    plant_cfg = load_plant(arg)
+    plant_cfg = load_sim_plant(arg)
     seed = plant_cfg.sim.seed if opts.seed is None else opts.seed
     plant_cfg = plant_cfg.with_updates({"sim": {"seed": seed}})
     control_Ts = float(plant_cfg.rig.Ts)

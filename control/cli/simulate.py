@@ -12,11 +12,16 @@ from tqdm import tqdm
 
 from pneutune.control.cli.common import info, make_parser, print_json, run_cli
 from pneutune.control.contracts.atomic import sha256_file
-from pneutune.control.contracts.plant import PlantConfig, load_plant
+from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.recording import plant_meta
 from pneutune.control.logs.writer import ZSTD_LEVELS
-from pneutune.control.rig.deploy import scenario_log_path
+from pneutune.control.plant.params import load_sim_plant
+from pneutune.control.rig.deploy import (
+    check_reference_in_limits,
+    check_rig_compatible,
+    scenario_log_path,
+)
 from pneutune.control.sim.table import format_table
 
 DESCRIPTION = """\
@@ -107,6 +112,14 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
         raise ExperimentError("--controller needs --scenario S (a name, table1, all or a "
                               "comma-separated list)")
     scenarios = resolve_scenarios(args.scenario)
+    # the same checks as deploy: the law's filters and PWM inverse are built for one Ts and
+    # PWM frequency, and a reference outside the limits (another rig's stroke) runs on the stops
+    rig_meta = plant_cfg.rig_metadata()
+    check_rig_compatible(controller, rig_meta, args.controller,
+                         f"plant {args.plant}" if args.plant else "the default plant, the "
+                         "paper's rig")
+    for sc in scenarios:
+        check_reference_in_limits(controller, sc, rig_meta, args.controller)
     args.several = len(scenarios) > 1
     cfg_vec = pack(controller)
     results: dict[str, Any] = {}
@@ -213,7 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                               f"{ZSTD_LEVELS.stop - 1}, got "
                               f"{args.compression_level}")
 
-    plant_cfg = load_plant(args.plant)
+    plant_cfg = load_sim_plant(args.plant)
     if args.seed is not None and args.seed < 0:
         raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
     seed = plant_cfg.sim.seed if args.seed is None else args.seed

@@ -39,16 +39,17 @@ def _reader() -> YAML:
 
 
 def _check_nodes(root: Node | None) -> str:
-    """The first duplicate key or alias in a composed document, as a sentence ("" if none)."""
-    seen: set[int] = set()
+    """The first duplicate key, anchor or alias in a composed document, as a sentence ("" if
+    none)."""
     stack = [root] if root is not None else []
     while stack:
         node = stack.pop()
-        if id(node) in seen:  # composing resolves an alias to the anchored node itself
-            return (f"the node anchored (&) at line {node.start_mark.line + 1} is used again "
-                    f"through an alias (*); anchors and aliases are not allowed in a contract "
-                    f"file")
-        seen.add(id(node))
+        # an alias (*a) composes to its anchored node itself, so refusing every anchor refuses
+        # every alias too, before a recursive or exponentially nested one is walked
+        anchor = getattr(node, "anchor", None)
+        if anchor:
+            return (f"an anchor (&{anchor}) at line {node.start_mark.line + 1}; anchors and "
+                    f"aliases are not allowed in a contract file")
         if isinstance(node, MappingNode):
             first: dict[tuple[str, str], int] = {}
             for key, value in node.value:
@@ -127,6 +128,33 @@ def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, An
     return out
 
 
+def _data_loc(loc: tuple[Any, ...], data: Any) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """``loc`` without the member labels pydantic puts in it for a union, and those labels.
+
+    ``source.SourceInfo.run`` is the file's ``source.run``: a string that is not the last item
+    and not a key of the mapping the path has reached (a missing parent would have been the
+    error itself), or that comes where the path has reached a list, is such a label. Without
+    the data the path stays as pydantic gave it.
+    """
+    if data is None:
+        return loc, ()
+    out: list[Any] = []
+    labels: list[Any] = []
+    node = data
+    for i, item in enumerate(loc):
+        if isinstance(item, str) and i + 1 < len(loc) and (
+                (isinstance(node, Mapping) and item not in node)
+                or isinstance(node, (list, tuple))):
+            labels.append((len(out), item))
+            continue
+        out.append(item)
+        try:
+            node = node[item]
+        except (KeyError, IndexError, TypeError):
+            node = None
+    return tuple(out), tuple(labels)
+
+
 def _format_loc(loc: tuple[Any, ...]) -> str:
     parts: list[str] = []
     for item in loc:
@@ -163,7 +191,8 @@ def _describe(err: Mapping[str, Any]) -> str:
     return msg
 
 
-def validation_error(file: str, exc: ValidationError, prefix: str = "") -> ConfigError:
+def validation_error(file: str, exc: ValidationError, prefix: str = "",
+                     data: Any = None) -> ConfigError:
     """Turn the first error of a pydantic ValidationError into a ConfigError.
 
     Parameters
@@ -174,10 +203,15 @@ def validation_error(file: str, exc: ValidationError, prefix: str = "") -> Confi
         The validation failure.
     prefix : str
         Key path to prepend (when a sub-model was validated on its own).
+    data : object, optional
+        The validated data: with it, the key path leaves out pydantic's union member labels.
     """
     errs = exc.errors(include_url=False)
     err = errs[0]
-    key = _format_loc(tuple(err.get("loc", ())))
+    loc, labels = _data_loc(tuple(err.get("loc", ())), data)
+    key = _format_loc(loc)
+    # the other members of a union fail too: count only the problems of the first's member
+    errs = [e for e in errs if _data_loc(tuple(e.get("loc", ())), data)[1] == labels]
     if prefix:
         key = f"{prefix}.{key}" if key else prefix
     message = _describe(err)
@@ -196,7 +230,7 @@ def validate_model(model: type[M], data: Mapping[str, Any], file: str) -> M:
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise validation_error(file, exc) from None
+        raise validation_error(file, exc, data=data) from None
 
 
 def load_config(path: str | os.PathLike[str], model: type[M], schema: str,

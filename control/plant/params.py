@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.contracts.plant import PlantConfig, load_plant
+from pneutune.control.errors import ConfigError
 from pneutune.control.physics.friction import stribeck_peak, stribeck_stiffness
 
 P_AA, P_AB, P_XMIN, P_XMAX, P_V0A, P_V0B, P_P0, P_T0, P_N, P_R = range(10)
@@ -47,6 +48,10 @@ N_PARAMS = 80
 #: ``benchmarks/step_rule.py`` can compare factors in one process (docs/integration.md, "The
 #: step rule's factor": 2 is as accurate as the earlier 1.4 against a 10 us step).
 STEP_STIFFNESS: float = 2.0
+#: The shortest step :func:`load_sim_plant` lets a plant file need [s]: ten million steps per
+#: simulated second, a few seconds of computing each (a gram of moving mass on a steep Stribeck
+#: law needs 0.5 us; a microgram against the paper's b_v, 0.6 ns).
+MIN_SIM_STEP: float = 1.0e-7
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,6 +113,37 @@ def set_step_limits(v: np.ndarray) -> None:
             else:
                 hi = mid
         v[P_UFREE] = hi
+
+
+def gas_spring_step(cfg: PlantConfig, factor: float = STEP_STIFFNESS) -> float:
+    """The longest RK4 step the chambers' gas spring allows the moving mass [s].
+
+    The air in the chambers is a spring on the piston: moving it by dx changes p_i by
+    ``n p_i A_i dx / V_i``, so its stiffness is at most ``n_eff p_s (A_a^2/V_a0 + A_b^2/V_b0)``
+    (both chambers at supply, each at its dead volume, line volumes included; ``n_eff`` is
+    ``heat.gamma`` with the energy equation, ``rig.n`` without). RK4 is stable on an undamped
+    mode while ``h omega`` stays below 2.83; this keeps it at ``factor`` (the step rule's 2).
+    For the paper's geometry the bound passes ``sim.dt`` only below about 0.09 kg, so it leaves
+    every plant of cylinder-like mass as it was. Without it a plant of a few grams diverged.
+
+    Parameters
+    ----------
+    cfg : PlantConfig
+        The plant.
+    factor : float
+        ``h omega`` at most this [-].
+
+    Returns
+    -------
+    float
+        The step [s].
+    """
+    r = cfg.rig
+    n_eff = cfg.heat.gamma if cfg.heat.h is not None else r.n
+    v0a = r.V0a + cfg.lines.a.volume
+    v0b = r.V0b + cfg.lines.b.volume
+    stiffness = n_eff * r.p_s * (r.A_a**2 / v0a + r.A_b**2 / v0b)
+    return float(factor * np.sqrt(cfg.total_mass / stiffness))
 
 
 def _pack_effects(cfg: PlantConfig, v: np.ndarray) -> None:
@@ -175,8 +211,10 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     v[P_LEAKC] = cfg.leak.C
     d = cfg.disturbance
     v[P_FN], v[P_DA], v[P_DB] = d.F_n, d.D_a, d.D_b
-    v[P_DT] = cfg.sim.dt  # the longest step; sliding friction may shorten it (dynamics)
     v[P_STEPK] = STEP_STIFFNESS  # read now, not at import: a benchmark may compare factors
+    # the longest step: sim.dt, or less on a plant so light that its gas spring needs it;
+    # sliding friction may shorten it further (dynamics)
+    v[P_DT] = min(cfg.sim.dt, gas_spring_step(cfg, v[P_STEPK]))
     set_step_limits(v)
     s = cfg.sensors
     v[P_XNOISE], v[P_XSTEP], v[P_PNOISE] = s.x_noise, s.x_step, s.p_noise
@@ -185,6 +223,62 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     steps = np.array(d.force_steps, dtype=np.float64).reshape(-1, 2)
     steps.setflags(write=False)
     return PlantParams(vec=v, force_steps=steps, p_s=r.p_s, seed=cfg.sim.seed, config=cfg)
+
+
+def step_limits(pp: PlantParams) -> dict[str, float]:
+    """The longest step each of the plant's fast modes allows the integrator [s].
+
+    Keys: ``sim.dt`` (the file's step, or the gas spring's when shorter: :func:`gas_spring_step`),
+    ``friction`` (the steepest sliding friction, viscous or Stribeck, ``P_DTMIN`` and
+    ``P_STEPK M / b_v``) and ``friction.sigma0`` (the LuGre bristles, when on).
+    """
+    v = pp.vec
+    out = {"sim.dt": float(v[P_DT]), "friction": float(v[P_DTMIN])}
+    if v[P_BV] > 0.0:
+        out["friction"] = min(out["friction"], float(v[P_STEPK] * v[P_M] / v[P_BV]))
+    if v[P_SIGMA0] > 0.0:
+        out["friction.sigma0"] = float(v[P_DTLUGRE])
+    return out
+
+
+def load_sim_plant(path: str | None) -> PlantConfig:
+    """Load a plant.yaml for the simulator, refusing one the integrator cannot run.
+
+    A plant whose fastest mode (a moving mass of micrograms against the friction's slope,
+    its gas spring or LuGre bristles) needs steps below :data:`MIN_SIM_STEP` would take
+    minutes to hours per simulated second (and a compiled run does not see Ctrl-C): that is a
+    unit mistake, not a cylinder.
+
+    Parameters
+    ----------
+    path : str or None
+        The plant.yaml; None gives the paper's rig.
+
+    Returns
+    -------
+    PlantConfig
+
+    Raises
+    ------
+    ConfigError
+        Bad file (see :func:`~pneutune.control.contracts.plant.load_plant`), or a plant whose
+        shortest step is below :data:`MIN_SIM_STEP`, naming the mass and the mode that needs it.
+    """
+    cfg = load_plant(path)
+    limits = step_limits(pack_plant(cfg))
+    key = min(limits, key=lambda k: limits[k])
+    if limits[key] < MIN_SIM_STEP:
+        what = {"sim.dt": "the gas spring of its chambers",
+                "friction": f"its sliding friction (b_v {cfg.friction.b_v:g} N s/m and the "
+                            "Stribeck slope)",
+                "friction.sigma0": f"the LuGre bristles (sigma0 {cfg.friction.sigma0:g} N/m)"}[key]
+        raise ConfigError(
+            str(path) if path is not None else "<defaults>", "mass",
+            f"a moving mass of {cfg.total_mass:g} kg against {what} needs integration steps "
+            f"of {limits[key]:.2g} s ({1.0 / limits[key]:.1e} steps per simulated second; the "
+            f"simulator runs plants down to {MIN_SIM_STEP:g} s); a cylinder's moving parts "
+            "weigh grams to tonnes: check that mass and payload are in kg")
+    return cfg
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,10 +30,11 @@ from tqdm import tqdm
 
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.contracts.controller import ControllerConfig, load_controller
-from pneutune.control.contracts.plant import PlantConfig, load_plant
+from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ConfigError, ExperimentError, argument_error
 from pneutune.control.law.layout import pack
 from pneutune.control.logs.recording import plant_meta
+from pneutune.control.plant.params import load_sim_plant
 from pneutune.control.sim.closed_loop import scenario_plant
 from pneutune.control.sim.scenarios import Scenario, resolve_scenarios
 
@@ -334,7 +335,7 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
     cfg, name, sha = controller_source(controller)
     kind, rig_arg = parse_rig(rig)
     command, plant_path = (rig_arg, None) if kind == "exec" else (None, rig_arg)
-    plant_cfg = load_plant(plant_path)
+    plant_cfg = load_sim_plant(plant_path)
     if command is None:  # an exec driver tells its rig in its hello, checked below
         rig_source = f"plant {plant_path}" if plant_path else "the default plant, the paper's rig"
         check_rig_compatible(cfg, plant_cfg.rig_metadata(), name, rig_source)

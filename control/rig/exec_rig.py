@@ -10,6 +10,7 @@ from a ``--rig exec:`` text and :func:`sim_server_command` the example server's.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shlex
@@ -159,6 +160,7 @@ class ExecRig:
         self.timeout = float(timeout)
         self.closed = False
         self.t = 0.0
+        self._clocked = False  # no time seen yet: a driver's clock may start anywhere
         self._stamps = np.zeros(4)
         self._duties_buf = bytearray(1 + FRAME_DUTIES.size)
         self._duties_buf[0:1] = b"W"
@@ -191,10 +193,24 @@ class ExecRig:
             self._end()
             raise
 
+    def _clock(self, t: float, request: str, advance: bool) -> float:
+        """The driver's time ``t`` from an ``R`` or ``A`` reply, checked: finite, never
+        earlier than the last one, and later after an advance (the protocol's clock is k Ts)."""
+        slack = 1.0e-6 * self.Ts
+        ok = math.isfinite(t) and (not self._clocked or (t > self.t + slack if advance
+                                                          else t >= self.t - slack))
+        self._clocked = True
+        if not ok:  # the driver still answers: the caller writes the fail-safe duties
+            after = "later than" if advance else "at or after"
+            raise RigIOError(f"the driver's {request} reply carries t = {t:.9g} s, expected a "
+                             f"finite time {after} the last one, {self.t:.9g} s (the protocol's "
+                             "clock is k Ts)")
+        return t
+
     def read(self) -> np.ndarray:
         """Sensors at the current sample [x, p_a, p_b, p_s]."""
         vals = FRAME_READ.unpack(self._request(b"R", FRAME_READ.size))
-        self.t = vals[0]
+        self.t = self._clock(vals[0], "R", advance=False)
         self._stamps = np.array(vals[5:9])
         return np.array(vals[1:5])
 
@@ -210,7 +226,8 @@ class ExecRig:
 
     def advance(self) -> None:
         """Move to the next sample."""
-        (self.t,) = FRAME_TIME.unpack(self._request(b"A", FRAME_TIME.size))
+        (t,) = FRAME_TIME.unpack(self._request(b"A", FRAME_TIME.size))
+        self.t = self._clock(t, "A", advance=True)
 
     def rig_metadata(self) -> dict[str, float | str]:
         """The driver's ``rig`` block, from its hello."""

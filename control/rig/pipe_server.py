@@ -151,13 +151,13 @@ def serve_main(args: argparse.Namespace) -> int:
     int
         Exit status: that of :func:`serve`, or 2 for a bad plant or scenario.
     """
-    from pneutune.control.contracts.plant import load_plant
+    from pneutune.control.plant.params import load_sim_plant
     from pneutune.control.rig.excitation_plan import EXPERIMENTS
     from pneutune.control.rig.scenario_run import sim_rig_for
     from pneutune.control.sim.scenarios import resolve_scenarios
 
     try:
-        plant_cfg = load_plant(args.plant)
+        plant_cfg = load_sim_plant(args.plant)
         rig: DeploySimRig
         if args.scenario is None or args.scenario in EXPERIMENTS:
             rig = DeploySimRig(plant_cfg, seed=args.seed, sample_period=args.sample_period)

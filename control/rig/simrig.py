@@ -8,13 +8,15 @@ implements (:class:`~pneutune.control.rig.protocol.Rig`) plus ``truth()``.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.plant import dynamics as plant
-from pneutune.control.plant.params import P_TS, PlantParams, pack_plant
+from pneutune.control.plant.params import P_TS, S_PA, S_PB, S_V, S_X, PlantParams, pack_plant
 from pneutune.control.rig.supervisor import FAIL_SAFE_DUTIES
+from pneutune.control.rig.wire import RigIOError
 
 
 class SimRig:
@@ -98,6 +100,13 @@ class SimRig:
         plant.advance(self.params.vec, self.state, (self.k + 1) * self.Ts, self.supply,
                       self.params.force_steps)
         self.k += 1
+        st = self.state
+        if not (math.isfinite(st[S_X]) and math.isfinite(st[S_V]) and math.isfinite(st[S_PA])
+                and math.isfinite(st[S_PB]) and st[S_PA] > 0.0 and st[S_PB] > 0.0):
+            raise RigIOError(
+                f"the simulated plant diverged before t={self.t:.4f} s (x {st[S_X]:.3g} m, "
+                f"v {st[S_V]:.3g} m/s, p_a {st[S_PA]:.3g} Pa, p_b {st[S_PB]:.3g} Pa): check "
+                "the plant file's mass, friction and volumes")
 
     def set_scenario_start(self, t0: float | None) -> None:
         """Time the plant's timed changes (``disturbance.force_steps``) from the scenario's start.

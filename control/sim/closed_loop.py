@@ -83,7 +83,8 @@ def run_kernel(p: np.ndarray, s: np.ndarray, force_steps: np.ndarray, p_s: np.nd
     -------
     int
         Samples completed ``n`` if all went well; ``-(k+1)`` if the plant state became
-        non-finite at sample k (unstable); ``-(n + 1 + k)`` if aborted at sample k on
+        non-finite, or a chamber's absolute pressure fell to zero or below, at sample k
+        (unstable); ``-(n + 1 + k)`` if aborted at sample k on
         ``abort_error``.
     """
     n = ref.shape[0]
@@ -111,8 +112,8 @@ def run_kernel(p: np.ndarray, s: np.ndarray, force_steps: np.ndarray, p_s: np.nd
         plant.set_duties(p, s, t, d)
         plant.advance(p, s, (k + 1) * Ts, p_s[k], force_steps)
         if not (np.isfinite(s[S_X]) and np.isfinite(s[S_V]) and np.isfinite(s[S_PA])
-                and np.isfinite(s[S_PB])):
-            return -(k + 1)
+                and np.isfinite(s[S_PB]) and s[S_PA] > 0.0 and s[S_PB] > 0.0):
+            return -(k + 1)  # diverged: an absolute pressure at or below zero is no state
         if abs(sensors[k, 0] - ref[k, 0]) > abort_error:
             return -(n + 1 + k)
     return n

@@ -16,6 +16,8 @@ mode              breaks                 what it does
 ``ignore_eof``    ``end_of_input``       keeps running after end of input
 ``ignore_close``  ``close``              answers ``C`` but keeps running until end of input
 ``late``          ``latency``            answers ``A`` at sample 50 after ``--delay`` seconds
+``clock_nan``     ``clock``              answers ``A`` at sample 30 with t = NaN
+``clock_back``    ``clock``              answers ``R`` at sample 30 with t = 0
 ================  =====================  ==================================================
 
 Standard library only (it starts in a few tens of ms); no hardware, a piston at rest.
@@ -30,7 +32,7 @@ import sys
 import time
 
 MODES = ("ok", "bad_hello", "stamp_future", "clock", "accept_duty", "accept_opcode",
-         "ignore_eof", "ignore_close", "late")
+         "ignore_eof", "ignore_close", "late", "clock_nan", "clock_back")
 TS = 0.004
 RIG = {"A_a": 7.854e-3, "A_b": 7.54e-3, "x_min": -0.0015, "x_max": 0.0485, "V0a": 5.036e-5,
        "V0b": 2.916e-5, "p0": 101325.0, "p_s": 6.0e5, "T0": 283.15, "n": 1.2, "R": 287.0,
@@ -71,7 +73,8 @@ def main() -> int:
             reply(struct.pack("<I", len(hello)) + hello)
         elif op == b"R":
             stamp = t + TS if mode == "stamp_future" and k >= 20 else t
-            reply(struct.pack("<9d", t, 0.0235, 2.0e5, 2.0e5, 6.0e5, *(stamp,) * 4))
+            t_read = 0.0 if mode == "clock_back" and k == 30 else t
+            reply(struct.pack("<9d", t_read, 0.0235, 2.0e5, 2.0e5, 6.0e5, *(stamp,) * 4))
         elif op == b"W":
             raw = inp.read(32)
             if len(raw) < 32:
@@ -85,7 +88,7 @@ def main() -> int:
                 time.sleep(args.delay)
             k += 1
             t = (2 * k - 100) * TS if mode == "clock" and k > 100 else k * TS
-            reply(struct.pack("<d", t))
+            reply(struct.pack("<d", float("nan") if mode == "clock_nan" and k == 30 else t))
         elif op == b"C":
             reply(b"")
             if mode != "ignore_close":
