@@ -201,6 +201,25 @@ def test_exec_broken_clock_is_a_rig_io_fault(mode, reply, after, last, tmp_path,
     assert run.run["status"] == "fault" and list(run["/rig/events"]["code"]) == ["rig_io"]
 
 
+def test_a_unix_time_clock_conforms_and_its_stale_channel_is_caught(tmp_path, capsys):
+    """A driver whose clock starts at 1.7e9 s (a hardware clock in Unix time) conforms: the
+    check and the client count from its first t. Its sample times are judged on that clock:
+    x's frozen from sample 30 (0.12 s) is stale once older than limits.sensor_timeout_s
+    (20 ms in data/controller-paper.yaml): at 0.14 s or the sample after (at 1.7e9 s a double
+    resolves 0.24 us, so the age at 0.14 s is 20 ms give or take that). Before, the ages were
+    t - 1.7e9 < 0 and nothing was ever stale."""
+    report = check_driver(_broken("clock_unix"), samples=60, timeout=CHECK_TIMEOUT)
+    assert report.passed, report.format()
+    log = tmp_path / "unix.mcap"
+    cmd = shlex.join(_broken("stale_unix"))
+    assert deploy_main([str(PAPER_YAML), "--rig", f"exec:{cmd}", "--duration", "1",
+                        "--log", str(log)]) == 3
+    errors = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "fault sensor_stale" in errors[0], errors
+    assert re.search(r"sensor x: no new sample for 0\.0(200|240) s at t=0\.14(0|4)0 s",
+                     errors[0]), errors[0]
+
+
 @pytest.mark.parametrize("mode", ["clock_nan", "clock_back"])
 def test_check_catches_a_broken_clock(mode, capsys):
     """The conformance check fails a NaN or backward time as ``clock`` (a read whose t runs

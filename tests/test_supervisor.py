@@ -248,6 +248,17 @@ def test_stale_rules(sup):
     assert faults[6] is not None and faults[6].code == "sensor_stale"
 
 
+def test_a_nan_sample_time_is_stale_at_once(sup):
+    """A finite reading whose sample time is NaN (the protocol's "never delivered"): stale at
+    the first sample, with a message that says why; ``t - NaN > timeout`` is false, which let
+    a frozen channel with a NaN stamp through before."""
+    ev = sup.check_sensors(0.0, GOOD, [0.0, 0.0, 0.0, np.nan])
+    assert ev is not None and ev.code == "sensor_stale"
+    assert ev.message == ("sensor p_s reads 600000.0 at t=0.0000 s, but the rig gives its "
+                          "sample time as NaN (never delivered): a value without a sample time "
+                          "cannot be judged fresh")
+
+
 def test_warnings_latch_once(sup):
     """A warning is given once per cause, and only after the hold time."""
     theta = np.array(sup.settings.theta_max) - 1e-9

@@ -14,8 +14,9 @@ when all pass and 1 otherwise. The checks, in :data:`CHECKS` order:
     ``samples`` rounds of ``R``, ``W`` (all valves closed), ``A``, each answered ``K`` with
     its fixed-size body; no sample time lies after the sample's ``t``.
 ``clock``
-    ``t`` is ``k Ts`` at the k-th ``R`` and ``(k+1) Ts`` after the k-th ``A``, to
-    :data:`CLOCK_RTOL` of Ts: the clock advances by Ts, no sample skipped.
+    ``t`` is ``t0 + k Ts`` at the k-th ``R`` and ``t0 + (k+1) Ts`` after the k-th ``A``, to
+    :data:`CLOCK_RTOL` of Ts, t0 the first ``R``'s t (0 on a simulated rig; a hardware clock
+    may start anywhere): the clock advances by Ts, no sample skipped.
 ``bad_duty``
     A duty above 1, below 0 or NaN (each in a fresh session) gets ``E``, after which the
     server exits with a non-zero status.
@@ -247,16 +248,22 @@ def _main_session(s: _Session, samples: int, sample_period: float | None = None
         worst = 0.0
         seq_fail = ""
         k = 0
+        t0 = None  # the driver's clock may start anywhere (a hardware clock's own origin)
         try:
             for k in range(samples):
                 vals, t_next = s.round(k)
                 t, stamps = vals[0], vals[5:9]
+                if t0 is None:
+                    t0 = t if math.isfinite(t) else 0.0
                 for t_got, j, op in ((t, k, "R"), (t_next, k + 1, "A")):
-                    err = abs(t_got - j * Ts)
-                    worst = max(worst, err)
-                    if not err <= tol and not clock_fail:
+                    err = abs(t_got - t0 - j * Ts)
+                    worst = max(worst, err) if math.isfinite(err) else math.inf
+                    # a clock far from 0 (1.7e9 s: a Unix time) resolves only 0.24 us in a double
+                    slack = max(tol, 8.0 * math.ulp(t_got)) if math.isfinite(t_got) else tol
+                    if not err <= slack and not clock_fail:
+                        start = "" if t0 == 0.0 else "t0 + "
                         clock_fail = (f"{op} at sample {k} gave t = {t_got!r} s, expected "
-                                      f"{j} Ts = {j * Ts!r} s")
+                                      f"{start}{j} Ts = {t0 + j * Ts!r} s")
                 late = [st for st in stamps if not (math.isnan(st) or st <= t + tol)]
                 if late:
                     seq_fail = (f"R at sample {k}: sample time {late[0]!r} s is after the "
@@ -273,8 +280,10 @@ def _main_session(s: _Session, samples: int, sample_period: float | None = None
         elif done == 0:
             clock = _not_run("clock", "no complete R, W, A round")
         else:
-            clock = CheckResult("clock", True, f"t = k Ts at every R and A of {done} samples "
-                                               f"(largest |t - k Ts| = {worst:.3g} s)")
+            origin = "" if not t0 else f" from t0 = {t0!r} s"
+            clock = CheckResult("clock", True, f"t = k Ts at every R and A of {done} "
+                                               f"samples{origin} (largest |t - t0 - k Ts| = "
+                                               f"{worst:.3g} s)")
         return True, hello, sequence, clock
     finally:
         s.end()
@@ -423,7 +432,8 @@ session and report each check:
   hello           H gets the protocol, Ts and a complete, valid rig block (Ts divides
                   rig.Ts; with --sample-period S, Ts = S)
   sequence        --samples rounds of R, W (valves closed), A, each answered K, well formed
-  clock           t = k Ts at every R and A: the clock advances by Ts, no sample skipped
+  clock           t = t0 + k Ts at every R and A: the clock advances by Ts, no sample
+                  skipped (t0, the first R's t, may be anything)
   bad_duty        a duty above 1, below 0 or NaN gets E, then the server exits non-zero
   unknown_opcode  an unknown opcode gets E, then the server exits non-zero
   end_of_input    closing its stdin makes the server exit 0 within --timeout

@@ -160,7 +160,8 @@ class ExecRig:
         self.timeout = float(timeout)
         self.closed = False
         self.t = 0.0
-        self._clocked = False  # no time seen yet: a driver's clock may start anywhere
+        self._clocked = False  # no time seen yet
+        self._t0: float | None = None  # the driver's first time: the rig's clock counts from it
         self._stamps = np.zeros(4)
         self._duties_buf = bytearray(1 + FRAME_DUTIES.size)
         self._duties_buf[0:1] = b"W"
@@ -193,25 +194,31 @@ class ExecRig:
             self._end()
             raise
 
-    def _clock(self, t: float, request: str, advance: bool) -> float:
-        """The driver's time ``t`` from an ``R`` or ``A`` reply, checked: finite, never
-        earlier than the last one, and later after an advance (the protocol's clock is k Ts)."""
+    def _clock(self, t_driver: float, request: str, advance: bool) -> float:
+        """The rig's time from the ``t`` of an ``R`` or ``A`` reply, counted from the first
+        one the driver sent (a hardware clock may start anywhere: a Unix time works), and
+        checked: finite, never earlier than the last one, and later after an advance."""
+        if self._t0 is None and math.isfinite(t_driver):
+            self._t0 = t_driver
+        t = t_driver - self._t0 if self._t0 is not None else t_driver
         slack = 1.0e-6 * self.Ts
         ok = math.isfinite(t) and (not self._clocked or (t > self.t + slack if advance
                                                           else t >= self.t - slack))
         self._clocked = True
         if not ok:  # the driver still answers: the caller writes the fail-safe duties
             after = "later than" if advance else "at or after"
-            raise RigIOError(f"the driver's {request} reply carries t = {t:.9g} s, expected a "
-                             f"finite time {after} the last one, {self.t:.9g} s (the protocol's "
-                             "clock is k Ts)")
+            last = self.t + (self._t0 or 0.0)
+            raise RigIOError(f"the driver's {request} reply carries t = {t_driver:.9g} s, "
+                             f"expected a finite time {after} the last one, {last:.9g} s (the "
+                             "protocol's clock advances by Ts)")
         return t
 
     def read(self) -> np.ndarray:
         """Sensors at the current sample [x, p_a, p_b, p_s]."""
         vals = FRAME_READ.unpack(self._request(b"R", FRAME_READ.size))
         self.t = self._clock(vals[0], "R", advance=False)
-        self._stamps = np.array(vals[5:9])
+        # the channels' sample times on the same clock (a NaN, never delivered, stays NaN)
+        self._stamps = np.array(vals[5:9]) - (self._t0 or 0.0)
         return np.array(vals[1:5])
 
     def sample_times(self) -> np.ndarray | None:

@@ -76,6 +76,7 @@ protection against the pressure itself.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -366,6 +367,10 @@ class Supervisor:
             timeout = s.sensor_timeout_s
             if stamped:
                 age = t - float(self._stamps[i])
+                if math.isnan(age):
+                    return (f"sensor {CHANNELS[i]} reads {vals[i]!r} at t={t:.4f} s, but the "
+                            "rig gives its sample time as NaN (never delivered): a value "
+                            "without a sample time cannot be judged fresh")
                 return (f"sensor {CHANNELS[i]}: no new sample for {age:.4f} s at t={t:.4f} s "
                         f"(limits.sensor_timeout_s = {timeout:g} s)")
             age = t - float(self._state[sp.SUP_S_CHANGED_AT + i])

@@ -18,6 +18,8 @@ mode              breaks                 what it does
 ``late``          ``latency``            answers ``A`` at sample 50 after ``--delay`` seconds
 ``clock_nan``     ``clock``              answers ``A`` at sample 30 with t = NaN
 ``clock_back``    ``clock``              answers ``R`` at sample 30 with t = 0
+``clock_unix``    (nothing)              a clock that starts at a Unix time, 1.7e9 s
+``stale_unix``    (the supervisor)       that clock, and x's sample time frozen from sample 30
 ================  =====================  ==================================================
 
 Standard library only (it starts in a few tens of ms); no hardware, a piston at rest.
@@ -32,7 +34,10 @@ import sys
 import time
 
 MODES = ("ok", "bad_hello", "stamp_future", "clock", "accept_duty", "accept_opcode",
-         "ignore_eof", "ignore_close", "late", "clock_nan", "clock_back")
+         "ignore_eof", "ignore_close", "late", "clock_nan", "clock_back", "clock_unix",
+         "stale_unix")
+#: Where the Unix-time modes' clock starts [s].
+UNIX_T0 = 1.7e9
 TS = 0.004
 RIG = {"A_a": 7.854e-3, "A_b": 7.54e-3, "x_min": -0.0015, "x_max": 0.0485, "V0a": 5.036e-5,
        "V0b": 2.916e-5, "p0": 101325.0, "p_s": 6.0e5, "T0": 283.15, "n": 1.2, "R": 287.0,
@@ -74,7 +79,12 @@ def main() -> int:
         elif op == b"R":
             stamp = t + TS if mode == "stamp_future" and k >= 20 else t
             t_read = 0.0 if mode == "clock_back" and k == 30 else t
-            reply(struct.pack("<9d", t_read, 0.0235, 2.0e5, 2.0e5, 6.0e5, *(stamp,) * 4))
+            stamps = [stamp] * 4
+            if mode == "stale_unix" and k >= 30:
+                stamps[0] = 30 * TS
+            if mode in ("clock_unix", "stale_unix"):
+                t_read, stamps = UNIX_T0 + t_read, [UNIX_T0 + st for st in stamps]
+            reply(struct.pack("<9d", t_read, 0.0235, 2.0e5, 2.0e5, 6.0e5, *stamps))
         elif op == b"W":
             raw = inp.read(32)
             if len(raw) < 32:
@@ -88,7 +98,8 @@ def main() -> int:
                 time.sleep(args.delay)
             k += 1
             t = (2 * k - 100) * TS if mode == "clock" and k > 100 else k * TS
-            reply(struct.pack("<d", float("nan") if mode == "clock_nan" and k == 30 else t))
+            t_sent = UNIX_T0 + t if mode in ("clock_unix", "stale_unix") else t
+            reply(struct.pack("<d", float("nan") if mode == "clock_nan" and k == 30 else t_sent))
         elif op == b"C":
             reply(b"")
             if mode != "ignore_close":

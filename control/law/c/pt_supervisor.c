@@ -49,9 +49,10 @@ static int stale_channel(pt_real *state, const pt_real *sup, pt_real t, const pt
     int started = state[PT_SUP_S_STARTED] != PT_C(0.0);
     pt_real limit = sup[PT_SUP_STALE_AGE];
     if (sample_times != NULL) {
-        /* the first channel older than the limit, in channel order */
+        /* the first channel older than the limit, in channel order; a NaN sample time
+           (the rig says the channel never delivered) is older than any limit */
         for (i = 0; i < 4; ++i) {
-            if (t - sample_times[i] > limit) {
+            if (!(t - sample_times[i] <= limit)) {
                 return i;
             }
         }
