@@ -200,6 +200,24 @@ def test_ctrl_c_stops_the_run_and_writes_the_log(tmp_path):
     assert list(log["/rig/events"]["code"])[-1] == "interrupted"
 
 
+def test_more_ctrl_c_while_the_valves_close_loses_nothing(tmp_path):
+    """Ctrl-C at sample 3000, then again at the fail-safe write and at the close (the driver
+    sends them, tests/drivers/spy_driver.py): the later ones are told they are ignored, and the
+    log is written as after one. Before, the second one lost the whole log."""
+    out = tmp_path / "i.mcap"
+    proc = subprocess.run([sys.executable, "-m", "pneutune.control.cli.record", "--experiment",
+                           "commissioning", "--rig",
+                           _spy("--interrupt-at", "3000", "--interrupt-again"), "--out",
+                           str(out)], capture_output=True, text=True, timeout=120, check=False,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert proc.returncode == EXIT_INTERRUPTED, proc.stderr
+    assert "record: Ctrl-C again ignored: closing the valves and writing the log" in proc.stderr
+    assert "error: interrupted at t=" in proc.stderr
+    log = read_run_log(out)
+    assert log.run["status"] == "interrupted"
+    assert 0 < len(log["/rig/sensors"]) < 3000
+
+
 def test_bad_input_moves_nothing(tmp_path, capsys):
     """A driver whose hello period differs from the one asked for, a stroke too short for the
     protocol, --segments naming nothing, a period that does not divide rig.Ts: each is one

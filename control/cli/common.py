@@ -7,11 +7,14 @@ internal failure (traceback on stderr); 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import json
+import signal
 import sys
+import threading
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
 import numpy as np
@@ -56,6 +59,42 @@ def print_json(obj: Any) -> None:
 def info(message: str) -> None:
     """Prose for the user: always on stderr, so stdout stays clean for --json."""
     sys.stderr.write(message + "\n")
+
+
+@contextlib.contextmanager
+def first_interrupt_only(note: str) -> Iterator[None]:
+    """Inside the block the first Ctrl-C raises KeyboardInterrupt as usual, and later ones print
+    ``note`` and are otherwise ignored: the run that caught the first one closes its valves and
+    writes its log without a second Ctrl-C losing them.
+
+    Outside the main thread, or where SIGINT is ignored (a background job), nothing changes.
+
+    Parameters
+    ----------
+    note : str
+        What a second Ctrl-C is told (one line on stderr).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN:
+        yield
+        return
+    count = 0
+
+    def handler(signum: int, frame: Any) -> None:
+        nonlocal count
+        count += 1
+        if count == 1:
+            raise KeyboardInterrupt
+        sys.stderr.write(note + "\n")
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def run_cli(main: Callable[[Sequence[str] | None], int | None],

@@ -8,7 +8,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pneutune.control.cli.common import ArgumentParser, info, make_parser, print_json, run_cli
+from pneutune.control.cli.common import (
+    ArgumentParser,
+    first_interrupt_only,
+    info,
+    make_parser,
+    print_json,
+    run_cli,
+)
 from pneutune.control.constants import HOME_MODES
 from pneutune.control.law.cbuild import REALS
 from pneutune.control.rig.deploy import DeployResult, deploy
@@ -154,10 +161,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _emit(parser, args)
 
     # everything is checked before anything runs (the library's own checks)
-    result = deploy(args.controller, rig=args.rig, scenarios=args.scenario, seed=args.seed,
-                    duration=args.duration, fail_safe=args.fail_safe, home=args.home,
-                    realtime=args.realtime, log=args.log,
-                    log_dir=DEFAULT_LOG_DIR if args.log is None else None, progress=None)
+    with first_interrupt_only("deploy: Ctrl-C again ignored: closing the valves and writing "
+                              "the log"):
+        result = deploy(args.controller, rig=args.rig, scenarios=args.scenario,
+                        seed=args.seed, duration=args.duration, fail_safe=args.fail_safe,
+                        home=args.home, realtime=args.realtime, log=args.log,
+                        log_dir=DEFAULT_LOG_DIR if args.log is None else None, progress=None)
     for run in result.runs:
         if args.plots and run.result.loop.n_done > 1 and not run.homing_fault:
             from pneutune.control.cli.plots import plot_closed_loop

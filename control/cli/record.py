@@ -12,7 +12,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.cli.common import (
+    first_interrupt_only,
+    info,
+    make_parser,
+    print_json,
+    run_cli,
+)
 from pneutune.control.contracts.atomic import sha256_file
 from pneutune.control.errors import ExperimentError
 from pneutune.control.logs.recording import plant_meta
@@ -261,6 +267,16 @@ def execute(opts: RecordOptions) -> int:
     PneutuneError
         Bad input (exit 2 from the command): nothing moved.
     """
+    _check(opts)
+    rig, meta, truth, seed = _open_rig(opts)
+    with first_interrupt_only("record: Ctrl-C again ignored: closing the valves and writing the "
+                              "log of the completed segments"):
+        return _record(opts, rig, meta, truth, seed)
+
+
+def _record(opts: RecordOptions, rig: Any, meta: dict[str, str], truth: bool,
+            seed: int | None) -> int:
+    """The run on an open rig, then its log (:func:`execute`)."""
     from pneutune.control.rig.excitation import execute_protocol, protocol_settings
     from pneutune.control.rig.excitation_plan import (
         check_stroke,
@@ -271,8 +287,6 @@ def execute(opts: RecordOptions) -> int:
     )
     from pneutune.control.rig.supervisor import Supervisor
 
-    _check(opts)
-    rig, meta, truth, seed = _open_rig(opts)
     try:
         rig_meta = dict(rig.rig_metadata())
         sample_period = float(rig.Ts)

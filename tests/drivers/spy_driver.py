@@ -6,7 +6,9 @@ that ``--plan`` sent no ``R``, ``W`` or ``A``); ``--sample-period S`` is the per
 gives (default the rig block's 4 ms, whatever a client asked for); ``--die-at N`` exits with
 status 1 at the N-th ``A`` without a reply (a driver that crashes mid-run); ``--interrupt-at
 N`` sends SIGINT to its parent at the N-th ``A`` (a Ctrl-C at the terminal, which reaches the
-client alone: the driver runs in a session of its own).
+client alone: the driver runs in a session of its own), and with ``--interrupt-again`` once
+more at each later ``W`` and at ``C`` (an impatient user while the valves close and the log is
+written).
 
 Standard library only; the chambers sit at ambient, the supply at 6 bar, every channel fresh.
 """
@@ -31,6 +33,7 @@ def main() -> int:
     parser.add_argument("--sample-period", type=float, default=RIG["Ts"])
     parser.add_argument("--die-at", type=int, default=-1)
     parser.add_argument("--interrupt-at", type=int, default=-1)
+    parser.add_argument("--interrupt-again", action="store_true")
     args = parser.parse_args()
     ts = args.sample_period
     hello = json.dumps({"protocol": "pneutune.rig/1", "Ts": ts, "rig": RIG}).encode()
@@ -54,6 +57,8 @@ def main() -> int:
         elif op == b"W":
             if len(inp.read(32)) < 32:
                 return 0
+            if args.interrupt_again and 0 < args.interrupt_at <= k:
+                os.kill(os.getppid(), signal.SIGINT)
             out.write(b"K")
         elif op == b"A":
             k += 1
@@ -63,6 +68,8 @@ def main() -> int:
                 os.kill(os.getppid(), signal.SIGINT)
             out.write(b"K" + struct.pack("<d", k * ts))
         elif op == b"C":
+            if args.interrupt_again and 0 < args.interrupt_at <= k:
+                os.kill(os.getppid(), signal.SIGINT)
             out.write(b"K")
             out.flush()
             return 0
