@@ -27,6 +27,8 @@ PROTOCOL_KINDS: dict[str, tuple[str, ...]] = {
 #: The kinds of each protocol that excite the moving mass.
 MASS_KINDS: dict[str, tuple[str, ...]] = {"identification": ("acceleration",),
                                           "commissioning": ("burst", "brake", "coast")}
+#: The ``record --segments`` group of each protocol that holds those kinds.
+MASS_GROUPS: dict[str, str] = {"identification": "acceleration", "commissioning": "bursts"}
 #: Both protocols end with this segment.
 LAST_LABEL = "rest:end"
 #: The words for each kind in the notes.
@@ -148,5 +150,5 @@ def lacks_mass_segments(cov: Coverage | None) -> bool:
     return cov is not None and cov.lacks(*MASS_KINDS[cov.experiment])
 
 
-__all__ = ["KIND_WORDS", "LAST_LABEL", "MASS_KINDS", "PROTOCOL_KINDS", "Coverage", "coverage",
-           "lacks_mass_segments"]
+__all__ = ["KIND_WORDS", "LAST_LABEL", "MASS_GROUPS", "MASS_KINDS", "PROTOCOL_KINDS", "Coverage",
+           "coverage", "lacks_mass_segments"]

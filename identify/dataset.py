@@ -29,7 +29,7 @@ from scipy.signal import savgol_filter
 from pneutune.control.constants import RIG_KEYS, VALVES
 from pneutune.control.contracts.plant import RigConfig
 from pneutune.control.errors import LogError, MissingTopicError, NonFiniteValueError
-from pneutune.control.logs.reader import RunLog, read_run_log
+from pneutune.control.logs.reader import RunLog, read_run_log, run_stop_note
 from pneutune.control.logs.topics import REQUIRED_TOPICS
 
 from .run_record import run_record
@@ -117,6 +117,9 @@ class Dataset:
     repairs : str
         What :func:`regular_samples` did to the sensor samples (dropped duplicates, filled
         missing samples), or "" when they came evenly spaced.
+    stop_note : str
+        What the run record says of a run that stopped early and what to do, "; ..."
+        (:func:`~pneutune.control.logs.reader.run_stop_note`), or "".
     """
 
     path: str
@@ -139,6 +142,7 @@ class Dataset:
     selection: str = ""
     run_record: dict[str, Any] | None = None
     repairs: str = ""
+    stop_note: str = ""
 
     @property
     def n(self) -> int:
@@ -179,7 +183,7 @@ class Dataset:
                        segments=self.segments, experiment=self.experiment,
                        run_status=self.run_status, stopped_in=self.stopped_in,
                        selection=self.selection, run_record=self.run_record,
-                       repairs=self.repairs)
+                       repairs=self.repairs, stop_note=self.stop_note)
 
     @property
     def duration(self) -> float:
@@ -514,7 +518,7 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
                    run_status=str(log.run.get("status", "")),
                    stopped_in=str(log.run.get("stopped_in", "")),
                    selection=str(log.run.get("segments", "")), run_record=run_record(log),
-                   repairs=repairs)
+                   repairs=repairs, stop_note=run_stop_note(log.run))
 
 
 def _check_read_log(log: RunLog) -> None:

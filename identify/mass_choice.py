@@ -24,6 +24,7 @@ import numpy as np
 
 from pneutune.control.errors import LogError
 
+from .coverage import MASS_GROUPS, MASS_KINDS
 from .dataset import Dataset, Pool
 from .friction_prior import PriorFriction
 from .mass import MIN_SAMPLES_PER_PWM, LagMassIdentifier, samples_per_pwm
@@ -92,6 +93,7 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
                 log: Dataset | Sequence[Dataset] | None = None,
                 log_fit: np.ndarray | Sequence[np.ndarray] | None = None,
                 names: Sequence[str] = (), pooled: Pool | None = None,
+                unexcited: Sequence[str] = (),
                 ) -> tuple[float, tuple[float, float], str,
                            MassIdentifier | LagMassIdentifier | None]:
     """The mass, its range, their basis and the estimator (module docstring).
@@ -120,6 +122,9 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
         Their short names, for the basis of several logs.
     pooled : Pool, optional
         The pool behind ``data``, to name the logs of the integrated estimate.
+    unexcited : sequence of str
+        The experiments of logs sampled fast enough for the lag estimate that lack the
+        segments exciting the mass (so not in ``log``): the advice is then those segments.
 
     Returns
     -------
@@ -185,6 +190,12 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
         why = ("At this sampling the mass comes from the lag of the motion behind the pressure "
                "force, which gave no usable estimate (see its note); the integrated motion "
                "equation cannot replace it.")
+    elif unexcited:
+        kinds = MASS_KINDS[unexcited[0]]
+        why = (f"The log is sampled fast enough for the lag estimate but has none of the "
+               f"segments that excite the mass ({', '.join(kinds)}): record them (record "
+               f"--experiment {unexcited[0]} --segments {MASS_GROUPS[unexcited[0]]}) and "
+               f"identify both logs together.")
     elif lo <= limit:
         why = (f"With a viscous coefficient of {friction.b_v_:.0f} N s/m the mechanical pole "
                f"b_v/M lies above the Nyquist frequency of the {data.Ts * 1e3:g} ms sampling "

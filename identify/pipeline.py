@@ -62,7 +62,7 @@ from .friction_choice import (
     prior_theta,
 )
 from .friction_prior import PriorFriction
-from .mass import LagMassIdentifier
+from .mass import MIN_SAMPLES_PER_PWM, LagMassIdentifier, samples_per_pwm
 from .mass_choice import choose_mass
 from .model_build import build_model, build_plant
 from .motion import FrictionIdentifier, MassIdentifier
@@ -299,8 +299,12 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     # the mass's lag estimate: every log sampled fast enough, but not a protocol run without the
     # segments that excite the mass (coverage.lacks_mass_segments)
     lag_logs = [j for j in range(len(full)) if not lacks_mass_segments(covs[j])]
+    # logs fast enough for the lag estimate that lack those segments: what they need is the
+    # segments, not faster sampling
+    unexcited = [covs[j].experiment for j in range(len(full))
+                 if j not in lag_logs and samples_per_pwm(full[j]) >= MIN_SAMPLES_PER_PWM]
     M, M_range, M_basis, M_est = choose_mass(
-        data, friction, fit, mass, mass_tol, seed, notes,
+        data, friction, fit, mass, mass_tol, seed, notes, unexcited=unexcited,
         log=(log if not several else [full[j] for j in lag_logs]) if lag_logs else None,
         log_fit=(log.split(holdout)[0] if not several else
                  [full[j].split(holdout)[0] for j in lag_logs]) if lag_logs else None,

@@ -460,7 +460,7 @@ class ValveIdentifier(Identifier):
         if self.allow_unopened and self.unopened_.all():
             raise IdentificationError(
                 data.path, "no valve is ever commanded open in the fitted part of the log: "
-                "there is nothing to identify the valves from")
+                "there is nothing to identify the valves from" + data.stop_note)
         for i, name in enumerate(VALVES):
             u = data.u[mask, i]
             if self.unopened_[i] and self.allow_unopened:

@@ -182,6 +182,22 @@ def test_a_driver_that_dies_is_a_rig_io_fault_with_a_valid_log(tmp_path, capsys)
         "commissioning", PLANT.rig_metadata())][:summary["segments"]]
 
 
+def test_identify_on_a_log_cut_before_any_segment_says_what_stopped_the_run(tmp_path, capsys):
+    """A driver that dies at its 5th sample: the log holds the run record and the fault event
+    only, and identify's refusal says the run stopped, where, and what to do next."""
+    out = tmp_path / "d.mcap"
+    assert record_main(["--experiment", "commissioning", "--rig", _spy("--die-at", "5"),
+                        "--out", str(out)]) == EXIT_FAULT
+    capsys.readouterr()
+    with pytest.raises(PneutuneError) as exc:
+        read_run_log(out, required_topics=("/rig/sensors", "/rig/valves"))
+    message = str(exc.value)
+    assert "required topic /rig/sensors has no messages" in message
+    assert ("; the run that wrote it stopped with the fault rig_io in segment rest:start after "
+            "0/") in message
+    assert "record it again once the cause is fixed" in message
+
+
 def test_ctrl_c_stops_the_run_and_writes_the_log(tmp_path):
     """SIGINT (what Ctrl-C sends) reaches record alone: fail-safe duties, exit 130, the log of
     the completed segments written and valid."""
@@ -365,3 +381,19 @@ def test_a_run_interrupted_in_the_friction_ramps_identifies_with_notes(tmp_path,
     notes = " ".join(identify(out).model.notes)
     assert f"cut short in segment '{log.run['stopped_in']}'" in notes
     assert "no acceleration segments: the mass is the prior" in notes
+
+
+@pytest.mark.slow
+def test_a_fast_log_without_the_acceleration_segments_is_told_to_record_them(tmp_path, capsys):
+    """The friction ramps alone, logged every 0.5 ms (about 100 s of work): the mass is the
+    prior, and the note asks for the segments that excite it, not for faster sampling, which
+    the log already has. Before, it advised `record --sample-period 0.0005`."""
+    from pneutune.identify.pipeline import identify
+
+    out = tmp_path / "rf.mcap"
+    assert record_main(["--experiment", "identification", "--segments", "rest,friction",
+                        "--sample-period", "0.0005", "--out", str(out)]) == 0
+    (note,) = [n for n in identify(out).model.notes if n.startswith("mass: not identifiable")]
+    assert ("has none of the segments that excite the mass (acceleration): record them "
+            "(record --experiment identification --segments acceleration)") in note
+    assert "--sample-period" not in note

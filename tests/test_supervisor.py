@@ -248,6 +248,23 @@ def test_stale_rules(sup):
     assert faults[6] is not None and faults[6].code == "sensor_stale"
 
 
+def test_a_reading_in_the_wrong_unit_gets_a_hint(sup):
+    """A chamber at ambient read as gauge (250 Pa) or in bar (1.01), a position in mm (23.5):
+    the sensor_range fault says which unit the protocol wants."""
+    for value in (250.0, 1.01):
+        sup.reset()
+        ev = sup.check_sensors(0.0, [0.0235, value, 3e5, 6e5])
+        assert ev.code == "sensor_range"
+        assert ev.message.endswith("(gauge, or bar? the protocol's pressures are absolute, in Pa)")
+    sup.reset()
+    ev = sup.check_sensors(0.0, [23.5, 3e5, 3e5, 6e5])
+    assert ev.code == "sensor_range" and ev.message.endswith("(in mm? the protocol's positions "
+                                                             "are in m)")
+    sup.reset()  # far outside either unit: no hint
+    ev = sup.check_sensors(0.0, [0.0235, 3e7, 3e5, 6e5])
+    assert ev.code == "sensor_range" and ev.message.endswith("] Pa")
+
+
 def test_a_nan_sample_time_is_stale_at_once(sup):
     """A finite reading whose sample time is NaN (the protocol's "never delivered"): stale at
     the first sample, with a message that says why; ``t - NaN > timeout`` is false, which let

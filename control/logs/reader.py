@@ -95,6 +95,29 @@ class RunLog:
             ) from None
 
 
+def run_stop_note(run: dict[str, str]) -> str:
+    """What a log's ``run`` record says of a run that stopped early, and what to do, as a
+    sentence starting with "; " ("" for a run that ended normally or says nothing).
+
+    Parameters
+    ----------
+    run : dict[str, str]
+        The ``run`` metadata record (``status``, ``fault``, ``stopped_in``,
+        ``segments_completed`` as ``record`` and ``deploy`` write them).
+    """
+    status = run.get("status", "")
+    if status not in ("fault", "interrupted"):
+        return ""
+    how = "was interrupted" if status == "interrupted" else (
+        f"stopped with the fault {run['fault']}" if run.get("fault") else "stopped with a fault")
+    where = f" in segment {run['stopped_in']}" if run.get("stopped_in") else ""
+    done = (f" after {run['segments_completed']} segments" if run.get("segments_completed")
+            else "")
+    return (f"; the run that wrote it {how}{where}{done}: record it again once the cause is "
+            "fixed (its log's events say what stopped it), or record the missing segments "
+            "(record --segments) and identify both logs")
+
+
 def read_run_log(
     path: str | os.PathLike[str],
     required_topics: Sequence[str] = REQUIRED_TOPICS,
@@ -172,7 +195,7 @@ def read_run_log(
             file,
             f"required topic {missing[0]} has no messages"
             + (f" (nor {', '.join(missing[1:])})" if len(missing) > 1 else "")
-            + f"; present: {', '.join(sorted(present)) or 'none'}",
+            + f"; present: {', '.join(sorted(present)) or 'none'}" + run_stop_note(run),
         )
 
     factory = JsonDecoderFactory()

@@ -86,6 +86,10 @@ from pneutune.control.constants import THETA_NAMES, THETA_UNITS
 from pneutune.control.contracts.controller import ControllerConfig
 from pneutune.control.errors import PneutuneError
 
+#: [Pa]: a pressure reading this much below the sensor range is likely gauge (the hint of a
+#: ``sensor_range`` fault).
+STANDARD_ATMOSPHERE = 101325.0
+
 #: All valves closed: the fail-safe state (see the module docstring), [a_in, a_out, b_in, b_out].
 FAIL_SAFE_DUTIES: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 #: Both chambers to exhaust (a_out and b_out open): the alternative, selectable fail-safe.
@@ -358,11 +362,17 @@ class Supervisor:
         if code == "sensor_range":
             if i == 0:
                 x_lo, x_hi = s.x_min - s.x_span_margin, s.x_max + s.x_span_margin
+                hint = (" (in mm? the protocol's positions are in m)"
+                        if x_lo <= x * 1e-3 <= x_hi and not x_lo <= x <= x_hi else "")
                 return (f"sensor x reads {x:.6g} m at t={t:.4f} s, outside the sensor span "
-                        f"[{x_lo:.6g}, {x_hi:.6g}] m")
+                        f"[{x_lo:.6g}, {x_hi:.6g}] m{hint}")
             p_lo, p_hi = s.p_sensor_range
-            return (f"sensor {CHANNELS[i]} reads {_fmt_p(vals[i])} at t={t:.4f} s, outside "
-                    f"the sensor range [{p_lo:.6g}, {p_hi:.6g}] Pa")
+            p = vals[i]
+            hint = ""
+            if p < p_lo and (p + STANDARD_ATMOSPHERE >= p_lo or p_lo <= p * 1e5 <= p_hi):
+                hint = " (gauge, or bar? the protocol's pressures are absolute, in Pa)"
+            return (f"sensor {CHANNELS[i]} reads {_fmt_p(p)} at t={t:.4f} s, outside "
+                    f"the sensor range [{p_lo:.6g}, {p_hi:.6g}] Pa{hint}")
         if code == "sensor_stale":
             timeout = s.sensor_timeout_s
             if stamped:
