@@ -388,6 +388,10 @@ def test_same_seed_same_best_trial(tmp_path: Path, capsys: pytest.CaptureFixture
     (["--model", "{model}", "--trials", "3", "--scenarios", "sine-9hz"], "unknown scenario"),
     (["--model", "{bad}", "--trials", "3"], "mass"),
     (["--model", "{massless}", "--trials", "3"], "cannot make a controller.yaml"),
+    (["--model", "{model}", "--trials", "3", "--out", "{model}"],
+     "--out names a folder that cannot be written"),
+    (["--model", "{model}", "--trials", "3", "--storage", "{tmp}"],
+     "is a folder; give the journal file's path"),
 ])
 def test_bad_input_exits_2_with_one_error_line(argv: list[str], needle: str, tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
@@ -400,7 +404,8 @@ def test_bad_input_exits_2_with_one_error_line(argv: list[str], needle: str, tmp
     massless = tmp_path / "massless.yaml"
     write_yaml(massless, data)
     argv = [a.format(tmp=tmp_path, model=model, bad=bad, massless=massless) for a in argv]
-    code, stdout, stderr = _run([*argv, "--out", str(tmp_path / "o")], capsys)
+    out = [] if "--out" in argv else ["--out", str(tmp_path / "o")]
+    code, stdout, stderr = _run([*argv, *out], capsys)
     assert code == 2
     assert stdout == ""
     lines = stderr.strip().splitlines()

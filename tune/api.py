@@ -57,7 +57,7 @@ from .report import Comparison, compare, write_report
 from .restarts import Candidate, select, selection_objectives
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
 from .space import THETA_0_PARAM, controller_from_params, search_space
-from .storage import DEFAULT_JOURNAL, redact_url, storage_scheme
+from .storage import DEFAULT_JOURNAL, is_url, redact_url, storage_scheme
 from .study import RunSummary, StudySpec, default_study_name, finished, run_study
 
 #: Where ``tune`` writes by default.
@@ -367,6 +367,15 @@ def tune(model: Any, settings: TuneSettings | None = None,
         scratch = tempfile.TemporaryDirectory(prefix="pneutune-tune-")
         storage = str(Path(scratch.name) / DEFAULT_JOURNAL)
     storage_scheme(storage)  # an unknown scheme is bad input before any simulation
+    # folders that cannot be written are bad input before any simulation, not a traceback
+    # after the study
+    if settings.out is not None:
+        _check_writable_folder(Path(settings.out), "out")
+    if settings.storage and not is_url(settings.storage):
+        _check_writable_folder(Path(settings.storage).parent, "storage")
+        if Path(settings.storage).is_dir():
+            raise argument_error(TuneError, "storage", f"{settings.storage} is a folder; give "
+                                 "the journal file's path")
     # threads for a trial's draws: every CPU with one worker; the selection runs after the
     # workers have exited, so it may use every CPU whatever their number
     all_cpus = min(available_cpus(), settings.objective.n_draws)
@@ -555,6 +564,24 @@ def _save(out: Path, result: TuneResult, objective: TuneObjective,
                                        result.controller, report["paper"], result.comparison,
                                        {**facts, **paths}))
     return paths
+
+
+def _check_writable_folder(folder: Path, argument: str) -> None:
+    """``folder`` exists (made if need be) and takes a new file.
+
+    Raises
+    ------
+    TuneError
+        Naming ``argument`` and why the folder cannot be written.
+    """
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".pneutune-write-check-"):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise argument_error(TuneError, argument, f"names a folder that cannot be written, "
+                             f"{folder} ({reason}): give one this user can write") from None
 
 
 def _write(out: Path, name: str, model_sha: str, study_name: str, best: FrozenTrial,
