@@ -388,6 +388,8 @@ def test_same_seed_same_best_trial(tmp_path: Path, capsys: pytest.CaptureFixture
     (["--model", "{model}", "--trials", "3", "--scenarios", "sine-9hz"], "unknown scenario"),
     (["--model", "{bad}", "--trials", "3"], "mass"),
     (["--model", "{massless}", "--trials", "3"], "cannot make a controller.yaml"),
+    (["--model", "{short}", "--trials", "3"],
+     "rig.x_max: the stroke [-1.50, 28.50] mm is too short for scenario sine-0.5hz"),
     (["--model", "{model}", "--trials", "3", "--out", "{model}"],
      "--out names a folder that cannot be written"),
     (["--model", "{model}", "--trials", "3", "--storage", "{tmp}"],
@@ -403,7 +405,12 @@ def test_bad_input_exits_2_with_one_error_line(argv: list[str], needle: str, tmp
     data["theta"]["min"][0] = 0.0  # a valid model.yaml, but contract 4 needs θ1_min > 0
     massless = tmp_path / "massless.yaml"
     write_yaml(massless, data)
-    argv = [a.format(tmp=tmp_path, model=model, bad=bad, massless=massless) for a in argv]
+    data = load_yaml_mapping(model)
+    data["rig"]["x_max"] = 0.0285  # a 30 mm stroke: the 35 mm of the scenarios do not fit
+    short = tmp_path / "short.yaml"
+    write_yaml(short, data)
+    argv = [a.format(tmp=tmp_path, model=model, bad=bad, massless=massless, short=short)
+            for a in argv]
     out = [] if "--out" in argv else ["--out", str(tmp_path / "o")]
     code, stdout, stderr = _run([*argv, *out], capsys)
     assert code == 2

@@ -47,6 +47,7 @@ from pneutune.control.contracts.controller import (
 from pneutune.control.contracts.model import ModelConfig, load_model
 from pneutune.control.contracts.yamlio import write_yaml
 from pneutune.control.errors import ConfigError, argument_error
+from pneutune.control.sim.scenarios import SCENARIOS
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
@@ -352,12 +353,13 @@ def tune(model: Any, settings: TuneSettings | None = None,
     check_sampler(settings.sampler)
     model_cfg, model_sha, name = _load(model)
     try:  # a model whose θ box or valves cannot make a contract-4 controller: say so up front
-        controller_from_params(model_cfg, search_space(
+        paper = controller_from_params(model_cfg, search_space(
             model_cfg, settings.objective.variant).paper_params(),
             dead_zone=settings.objective.dead_zone)
     except ConfigError as exc:
         raise ConfigError(name, exc.key, "cannot make a controller.yaml from this model: "
                           f"{exc.message}") from None
+    _check_stroke(model_cfg, paper, settings.objective.scenarios, name)
     scratch = None
     if settings.storage:
         storage = settings.storage
@@ -564,6 +566,36 @@ def _save(out: Path, result: TuneResult, objective: TuneObjective,
                                        result.controller, report["paper"], result.comparison,
                                        {**facts, **paths}))
     return paths
+
+
+def _check_stroke(model_cfg: ModelConfig, controller: ControllerConfig,
+                  scenarios: Sequence[str], name: str) -> None:
+    """Every scenario's reference, centred mid-stroke as ``simulate`` and ``deploy`` run it,
+    lies within the limits of the controllers this model makes (its stroke).
+
+    A controller tuned on a stroke its scenarios overrun scores end-stop penalties, and
+    ``deploy`` then refuses it on the rig it was tuned for.
+
+    Raises
+    ------
+    ConfigError
+        Naming the model's ``rig.x_min``/``rig.x_max``, the scenario, its span and the limits.
+    """
+    rig = model_cfg.rig
+    lim = controller.limits
+    for scenario_name in scenarios:
+        sc = SCENARIOS[scenario_name]
+        x_r = sc.reference_array(float(rig.Ts), 0.5 * (rig.x_min + rig.x_max))[:, 0]
+        lo, hi = float(x_r.min()), float(x_r.max())
+        if lo < lim.x_min or hi > lim.x_max:
+            need = (hi - lo) + (rig.x_max - rig.x_min) - (lim.x_max - lim.x_min)
+            raise ConfigError(
+                name, "rig.x_max" if hi > lim.x_max else "rig.x_min",
+                f"the stroke [{rig.x_min * 1e3:.2f}, {rig.x_max * 1e3:.2f}] mm is too short "
+                f"for scenario {sc.name}: its reference spans [{lo * 1e3:.2f}, {hi * 1e3:.2f}] "
+                f"mm about mid-stroke, outside the limits [{lim.x_min * 1e3:.2f}, "
+                f"{lim.x_max * 1e3:.2f}] mm its controllers get; the scenarios need a stroke of "
+                f"at least {need * 1e3:.1f} mm (check the rig block, or tune on a longer axis)")
 
 
 def _check_writable_folder(folder: Path, argument: str) -> None:
