@@ -81,3 +81,16 @@ def test_the_truth_model_of_a_plant_with_effects_carries_the_ones_a_model_can() 
     assert eff.nominal == 1.0e-3
     assert eff.range == pytest.approx((0.8e-3, 1.2e-3), rel=1e-12)
     assert nominal_plant(model).io.delay == 1.0e-3
+
+
+def test_valve_delays_beyond_four_pwm_periods_are_refused_at_load() -> None:
+    """At rig.pwm_hz 2000 four PWM periods are 2 ms: a 3 ms closing delay is refused when the
+    model is read, naming its own key, not later as a plant.yaml key of an unnamed file."""
+    data = model_from_plant(PlantConfig()).to_dict()
+    data["rig"]["pwm_hz"] = 2000.0
+    data["valves"]["a_in"]["delay_off"] = 0.003
+    with pytest.raises(ConfigError) as exc:
+        validate_model(ModelConfig, data, "model.yaml")
+    assert (exc.value.file, exc.value.key) == ("model.yaml", "valves.a_in.delay_off")
+    assert exc.value.message == ("must not exceed 4 PWM periods (0.002 s at rig.pwm_hz = 2000 "
+                                 "Hz), got 0.003 s")

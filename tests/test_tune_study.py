@@ -82,6 +82,26 @@ def test_resume_after_kill_9_keeps_every_finished_trial(tmp_path: Path) -> None:
         assert after[n][0] == "FAIL"
 
 
+def test_ctrl_c_says_where_the_finished_trials_are_and_how_to_resume(tmp_path: Path) -> None:
+    """SIGINT mid-study: exit 130, one line naming the journal that keeps the finished trials
+    and how to resume, then ``error: interrupted``."""
+    model = write_truth_model(tmp_path)
+    out = tmp_path / "out"
+    journal = out / "study.journal"
+    proc = subprocess.Popen([*TUNE, "--model", str(model), "--trials", "60", "--out", str(out),
+                             *QUICK], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        _wait_for(journal, 4, proc)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert (f"tune: every finished trial is kept in {journal}; run the same command again to "
+            "resume the study") in err
+    assert err.rstrip().endswith("error: interrupted")
+
+
 @pytest.mark.parametrize("storage", ["journal", "sqlite"])
 def test_two_workers_give_unique_complete_trials(storage: str, tmp_path: Path) -> None:
     model = write_truth_model(tmp_path)

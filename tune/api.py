@@ -558,7 +558,9 @@ def behind_paper(comp: Comparison, trial: int, settings: TuneSettings) -> str | 
 def _save(out: Path, result: TuneResult, objective: TuneObjective,
           report: dict[str, Any]) -> dict[str, str]:
     """controller.yaml and the nominal and worst plants (atomically), then report.md; their
-    paths."""
+    paths. An earlier report.md goes first: a run killed between the files leaves a new
+    controller without a report (run the command again), never beside another trial's."""
+    (out / "report.md").unlink(missing_ok=True)
     paths = _write(out, report["model"], report["model_sha256"], report["study"], result.best,
                    result.controller, objective, result.comparison, report["seed"])
     facts = {k: v for k, v in report.items() if k not in ("study", "seed", "paper")}

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -21,7 +22,7 @@ from .objective import DEFAULT_SCENARIOS, ObjectiveSettings, TuneError
 from .pruners import PRUNERS
 from .samplers import CMAES_WARM_START, DEFAULT_SAMPLER, SAMPLERS
 from .space import VARIANTS
-from .storage import DEFAULT_JOURNAL
+from .storage import DEFAULT_JOURNAL, redact_url
 
 DEFAULT_MODEL = "reports/identify/model.yaml"
 
@@ -179,6 +180,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = tune(args.model, settings, progress=progress,
                       notes=lambda line: info(f"  {line}"))
+    except KeyboardInterrupt:
+        bar.close()
+        where = redact_url(args.storage) if args.storage else str(Path(args.out) / DEFAULT_JOURNAL)
+        info(f"tune: every finished trial is kept in {where}; run the same command again to "
+             "resume the study")
+        raise
     finally:
         bar.close()
     summary = result.summary()

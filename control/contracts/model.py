@@ -323,6 +323,16 @@ class ModelConfig(_Strict):
 
     @model_validator(mode="after")
     def _check(self) -> ModelConfig:
+        # the simulator handles a valve's switching within 4 PWM periods (plant.yaml's rule)
+        period = 1.0 / self.rig.pwm_hz
+        for name in VALVES:
+            valve = getattr(self.valves, name)
+            key, slowest = max((("delay_on", valve.delay_on), ("delay_off", valve.delay_off)),
+                               key=lambda kv: kv[1])
+            if slowest > 4.0 * period:
+                raise ValueError(f"valves.{name}.{key}: must not exceed 4 PWM periods "
+                                 f"({4.0 * period:.6g} s at rig.pwm_hz = {self.rig.pwm_hz:g} Hz), "
+                                 f"got {slowest:g} s")
         if self.mass_range is not None:
             _check_range("mass", self.mass_range[0], self.mass, self.mass_range[1])
         if self.effects:
