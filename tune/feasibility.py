@@ -223,9 +223,12 @@ def _reference(model: ModelConfig, objective: TuneObjective, seed: int
             return f"alternative {k}", params, why
     raise InfeasibleModelError(
         f"the nominal plant cannot be tracked: the paper's gains fail ({why}), and so do "
-        f"{N_ALTERNATIVES} other controllers sampled from the search space. The model is "
-        f"likely wrong (see its fit NRMSE x {model.fit.nrmse_x:.3g}, p_a "
-        f"{model.fit.nrmse_p_a:.3g}, p_b {model.fit.nrmse_p_b:.3g}, and its notes); identify "
+        f"{N_ALTERNATIVES} other controllers sampled from the search space. Either the rig "
+        f"cannot do what the scenarios ask (rig.Ts {model.rig.Ts:g} s, the paper's 0.004; "
+        f"supply rig.p_s {model.rig.p_s / 1e5:.3g} bar abs, the paper's 6; stroke "
+        f"{(model.rig.x_max - model.rig.x_min) * 1e3:.1f} mm for a 35 mm travel: check the rig "
+        f"block), or the model is wrong (see its fit NRMSE x {model.fit.nrmse_x:.3g}, p_a "
+        f"{model.fit.nrmse_p_a:.3g}, p_b {model.fit.nrmse_p_b:.3g}, and its notes): identify "
         "from a log that moves the piston at several speeds and charges and vents each chamber "
         "(simulate --experiment identification shows one)")
 
