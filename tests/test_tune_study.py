@@ -227,3 +227,32 @@ def test_an_interrupted_trial_leaves_no_traceback() -> None:
     assert f.filter(record("Trial 3 failed with value None.")) is False
     assert f.filter(record("Trial 4 failed with value None.")) is True
     assert f.filter(record("Trial 5 failed because of the following error: X")) is True
+
+
+def test_a_failure_raised_while_a_ctrl_c_went_through_a_library_is_the_interrupt(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Optuna's journal lock, interrupted inside its release, fails with FileNotFoundError in
+    its own clean-up (and its trial loop with UnboundLocalError): an exception whose context
+    holds a KeyboardInterrupt exits 130 with ``error: interrupted``, not as an internal
+    failure (exit 1)."""
+    from pneutune.control.cli.common import run_cli
+
+    def main(argv: object) -> int:
+        try:
+            raise KeyboardInterrupt
+        except BaseException:
+            raise FileNotFoundError(2, "No such file or directory") from None
+
+    def main_chained(argv: object) -> int:
+        try:
+            raise KeyboardInterrupt
+        except BaseException:
+            raise FileNotFoundError(2, "No such file or directory")  # noqa: B904
+
+    with pytest.raises(SystemExit) as exc:
+        run_cli(main_chained, [])
+    assert exc.value.code == 130
+    assert capsys.readouterr().err == "error: interrupted\n"
+    with pytest.raises(SystemExit) as exc:  # `from None` hides the context: a real failure
+        run_cli(main, [])
+    assert exc.value.code == 1

@@ -9,10 +9,11 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
-from pneutune.control.cli.common import info, make_parser, print_json, run_cli
+from pneutune.control.cli.common import caused_by_interrupt, info, make_parser, print_json, run_cli
 from pneutune.control.constants import WEAK_B_SPAN
 from pneutune.control.contracts.controller import DEAD_ZONE_MODES
 from pneutune.control.sim.scenarios import GROUPS, SCENARIOS
@@ -91,6 +92,14 @@ def _scenarios(value: str) -> tuple[str, ...]:
             raise TuneError(f"--scenarios: unknown scenario {part!r}; expected a comma-separated "
                             f"list of: {known}")
     return tuple(dict.fromkeys(names))
+
+
+def _resume_hint(args: Any, bar: Any) -> None:
+    """After a Ctrl-C: where the finished trials are, and how to go on."""
+    bar.close()
+    where = redact_url(args.storage) if args.storage else str(Path(args.out) / DEFAULT_JOURNAL)
+    info(f"tune: every finished trial is kept in {where}; run the same command again to resume "
+         "the study")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -180,11 +189,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = tune(args.model, settings, progress=progress,
                       notes=lambda line: info(f"  {line}"))
+    except Exception as exc:
+        if not caused_by_interrupt(exc):
+            raise
+        _resume_hint(args, bar)
+        raise
     except KeyboardInterrupt:
-        bar.close()
-        where = redact_url(args.storage) if args.storage else str(Path(args.out) / DEFAULT_JOURNAL)
-        info(f"tune: every finished trial is kept in {where}; run the same command again to "
-             "resume the study")
+        _resume_hint(args, bar)
         raise
     finally:
         bar.close()

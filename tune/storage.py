@@ -23,6 +23,8 @@ import contextlib
 import fcntl
 import json
 import os
+import signal
+import threading
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -118,15 +120,38 @@ class TrialEndSyncBackend(optuna.storages.journal.BaseJournalBackend):
         """Append ``logs`` as JSON lines; fsync unless they only add to running trials."""
         text = "\n".join(json.dumps(log, separators=(",", ":")) for log in logs) + "\n"
         sync = any(log.get("op_code") not in RUNNING_TRIAL_OPS for log in logs)
-        self._lock.acquire()
-        try:
-            with open(self._path, "ab") as f:
-                f.write(text.encode("utf-8"))
-                f.flush()
-                if sync:
-                    os.fsync(f.fileno())
-        finally:
-            self._lock.release()
+        with _no_interrupt():
+            self._lock.acquire()
+            try:
+                with open(self._path, "ab") as f:
+                    f.write(text.encode("utf-8"))
+                    f.flush()
+                    if sync:
+                        os.fsync(f.fileno())
+            finally:
+                self._lock.release()
+
+
+@contextlib.contextmanager
+def _no_interrupt() -> Iterator[None]:
+    """SIGINT held back while the journal's lock is taken, written under and released (a few
+    ms), then delivered. A Ctrl-C inside Optuna's lock release, between its unlink and the next
+    bytecode, made its handler unlink the file again and turned the interrupt into a
+    FileNotFoundError (exit 1 instead of 130). The handler is swapped rather than the signal
+    masked: a SIGINT that arrived just before the block runs its Python handler at some later
+    bytecode, which may be inside it. Outside the main thread nothing changes (Python runs
+    signal handlers in the main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[tuple[int, Any]] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append((signum, frame)))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if held and callable(previous):
+        previous(*held[0])
 
 
 def open_storage(storage: str) -> optuna.storages.BaseStorage:

@@ -97,6 +97,22 @@ def first_interrupt_only(note: str) -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised while a KeyboardInterrupt was being handled (anywhere in its
+    chain of causes and contexts): Optuna, for one, can fail in its own clean-up when a Ctrl-C
+    arrives inside it, and that failure is the interrupt, not a bug."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        # the chain Python prints: the cause, else the context unless `from None` hid it
+        cur = cur.__cause__ if cur.__cause__ is not None else (
+            None if cur.__suppress_context__ else cur.__context__)
+    return False
+
+
 def run_cli(main: Callable[[Sequence[str] | None], int | None],
             argv: Sequence[str] | None = None) -> NoReturn:
     """Run a command's ``main`` and turn its failures into the exit-status contract.
@@ -129,7 +145,11 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None],
         raise SystemExit(130) from None
     except SystemExit:
         raise
-    except Exception:  # an internal failure: show everything
+    except Exception as exc:
+        if caused_by_interrupt(exc):  # a library that failed while a Ctrl-C went through it
+            sys.stderr.write("error: interrupted\n")
+            raise SystemExit(130) from None
+        # an internal failure: show everything
         traceback.print_exc()
         sys.stderr.write("error: internal failure (a bug in pneutune; the traceback is above)\n")
         raise SystemExit(1) from None
