@@ -662,6 +662,14 @@ def advance(p: np.ndarray, s: np.ndarray, t_end: float, p_s: float,
 
 
 @njit(cache=True)
+def diverged(s: np.ndarray) -> bool:
+    """Whether the plant state ``s`` is no state: a non-finite position, speed or chamber
+    pressure, or an absolute chamber pressure at or below zero."""
+    return not (np.isfinite(s[S_X]) and np.isfinite(s[S_V]) and np.isfinite(s[S_PA])
+                and np.isfinite(s[S_PB]) and s[S_PA] > 0.0 and s[S_PB] > 0.0)
+
+
+@njit(cache=True)
 def truth(p: np.ndarray, s: np.ndarray, p_s: float, force_steps: np.ndarray,
           out: np.ndarray) -> None:
     """Fill ``out`` with the true [v, a, F_friction, F_ext, mdot_a, mdot_b] at the current time.

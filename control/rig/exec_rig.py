@@ -160,7 +160,6 @@ class ExecRig:
         self.timeout = float(timeout)
         self.closed = False
         self.t = 0.0
-        self._clocked = False  # no time seen yet
         self._t0: float | None = None  # the driver's first time: the rig's clock counts from it
         self._stamps = np.zeros(4)
         self._duties_buf = bytearray(1 + FRAME_DUTIES.size)
@@ -199,12 +198,11 @@ class ExecRig:
         one the driver sent (a hardware clock may start anywhere: a Unix time works), and
         checked: finite, never earlier than the last one, and later after an advance."""
         if self._t0 is None and math.isfinite(t_driver):
-            self._t0 = t_driver
+            self._t0 = t_driver  # the first time: the rig's 0
+            return 0.0
         t = t_driver - self._t0 if self._t0 is not None else t_driver
         slack = 1.0e-6 * self.Ts
-        ok = math.isfinite(t) and (not self._clocked or (t > self.t + slack if advance
-                                                          else t >= self.t - slack))
-        self._clocked = True
+        ok = math.isfinite(t) and (t > self.t + slack if advance else t >= self.t - slack)
         if not ok:  # the driver still answers: the caller writes the fail-safe duties
             after = "later than" if advance else "at or after"
             last = self.t + (self._t0 or 0.0)

@@ -8,7 +8,6 @@ implements (:class:`~pneutune.control.rig.protocol.Rig`) plus ``truth()``.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
@@ -100,9 +99,8 @@ class SimRig:
         plant.advance(self.params.vec, self.state, (self.k + 1) * self.Ts, self.supply,
                       self.params.force_steps)
         self.k += 1
-        st = self.state
-        if not (math.isfinite(st[S_X]) and math.isfinite(st[S_V]) and math.isfinite(st[S_PA])
-                and math.isfinite(st[S_PB]) and st[S_PA] > 0.0 and st[S_PB] > 0.0):
+        if plant.diverged(self.state):
+            st = self.state
             raise RigIOError(
                 f"the simulated plant diverged before t={self.t:.4f} s (x {st[S_X]:.3g} m, "
                 f"v {st[S_V]:.3g} m/s, p_a {st[S_PA]:.3g} Pa, p_b {st[S_PB]:.3g} Pa): check "

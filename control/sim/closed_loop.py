@@ -33,7 +33,7 @@ from pneutune.control.logs.recording import Recording
 from pneutune.control.numba_cache import njit
 from pneutune.control.plant import dynamics as plant
 from pneutune.control.plant.dynamics import rest_pressures
-from pneutune.control.plant.params import S_PA, S_PB, S_V, S_X, pack_plant
+from pneutune.control.plant.params import pack_plant
 from pneutune.control.sim.scenarios import Scenario, metric_window
 
 #: State indices logged on ``/control/state``: the named fields, then θ̂ (6).
@@ -111,9 +111,8 @@ def run_kernel(p: np.ndarray, s: np.ndarray, force_steps: np.ndarray, p_s: np.nd
             cstate[k, j] = cs[log_index[j]]
         plant.set_duties(p, s, t, d)
         plant.advance(p, s, (k + 1) * Ts, p_s[k], force_steps)
-        if not (np.isfinite(s[S_X]) and np.isfinite(s[S_V]) and np.isfinite(s[S_PA])
-                and np.isfinite(s[S_PB]) and s[S_PA] > 0.0 and s[S_PB] > 0.0):
-            return -(k + 1)  # diverged: an absolute pressure at or below zero is no state
+        if plant.diverged(s):
+            return -(k + 1)
         if abs(sensors[k, 0] - ref[k, 0]) > abort_error:
             return -(n + 1 + k)
     return n
