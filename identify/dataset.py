@@ -33,6 +33,7 @@ from pneutune.control.logs.reader import RunLog, read_run_log, run_stop_note
 from pneutune.control.logs.topics import REQUIRED_TOPICS
 
 from .run_record import run_record
+from .sample_times import align_channels
 
 #: Plausible absolute pressures [Pa]: about 0.5 to 12 bar (catches gauge pressures or bar).
 P_MIN_PLAUSIBLE, P_MAX_PLAUSIBLE = 0.5e5, 12.0e5
@@ -115,8 +116,10 @@ class Dataset:
         model.yaml's ``source.run`` of the log
         (:func:`~pneutune.identify.run_record.run_record`), or None (a pool of logs).
     repairs : str
-        What :func:`regular_samples` did to the sensor samples (dropped duplicates, filled
-        missing samples), or "" when they came evenly spaced.
+        What was done to the sensor samples: the channels brought to their messages' times
+        (:func:`~pneutune.identify.sample_times.align_channels`, where the log has
+        ``/rig/sensor_age``) and the slips :func:`regular_samples` repaired (dropped
+        duplicates, filled missing samples); "" when nothing was needed.
     stop_note : str
         What the run record says of a run that stopped early and what to do, "; ..."
         (:func:`~pneutune.control.logs.reader.run_stop_note`), or "".
@@ -501,7 +504,9 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
     path = log.path
     rig = _rig_from_log(log)
     h = sample_period(log, rig)
-    sensors, repairs = regular_samples(log["/rig/sensors"], h)
+    sensors, aligned = align_channels(log["/rig/sensors"], log.topics.get("/rig/sensor_age"))
+    sensors, repairs = regular_samples(sensors, h)
+    repairs = "; ".join(n for n in (aligned, repairs) if n)
     check_plausible(log, sensors, rig, h)
     t, sens, u = _align(sensors, log["/rig/valves"])
     # times from the first sensor sample: a log stamped in Unix time (as MCAP recorders do)

@@ -52,6 +52,7 @@ RUN_MD = {"schema": LOG_SCHEMA, "created_by": "test", "version": "0"}
 
 FIELDS = {
     "/rig/sensors": ("x", "p_a", "p_b", "p_s"),
+    "/rig/sensor_age": ("x", "p_a", "p_b", "p_s"),
     "/rig/valves": ("u_a_in", "u_a_out", "u_b_in", "u_b_out"),
     "/control/reference": ("x_r", "v_r", "a_r"),
     "/control/state": (

@@ -11,7 +11,7 @@ import numpy as np
 
 from pneutune.control.constants import LOG_SCHEMA, VALVES, VERSION
 from pneutune.control.contracts.atomic import sha256_file
-from pneutune.control.logs.topics import topic_fields
+from pneutune.control.logs.topics import AGE_RESOLUTION, topic_fields
 from pneutune.control.logs.writer import RunLogWriter
 
 SENSOR_FIELDS = topic_fields("/rig/sensors")
@@ -40,6 +40,13 @@ class Recording:
         Sampling period [s]; sample k is at ``k * Ts``.
     truth, reference, control_state : bool
         Whether ``/sim/truth``, ``/control/reference`` and ``/control/state`` are recorded.
+
+    Notes
+    -----
+    ``ages_`` holds each reading's age (the sample's time minus the time the rig says the
+    channel was sampled, :meth:`sample_ages`); it is written as ``/rig/sensor_age`` only when
+    some reading is not of its sample's instant, so a rig that samples every channel at once
+    writes no such topic.
     """
 
     n: int
@@ -49,6 +56,7 @@ class Recording:
     control_state: bool = False
     sensors_: np.ndarray = field(init=False)
     duties_: np.ndarray = field(init=False)
+    ages_: np.ndarray = field(init=False)
     truth_: np.ndarray | None = field(init=False, default=None)
     reference_: np.ndarray | None = field(init=False, default=None)
     state_: np.ndarray | None = field(init=False, default=None)
@@ -58,6 +66,7 @@ class Recording:
     def __post_init__(self) -> None:
         self.sensors_ = np.full((self.n, 4), np.nan)
         self.duties_ = np.full((self.n, 4), np.nan)
+        self.ages_ = np.zeros((self.n, 4))
         if self.truth:
             self.truth_ = np.full((self.n, len(TRUTH_FIELDS)), np.nan)
         if self.reference:
@@ -72,6 +81,24 @@ class Recording:
         """Sample times [s]."""
         return np.arange(self.n) * self.Ts
 
+    def sample_ages(self, k: int, t: float, sample_times: np.ndarray | None) -> None:
+        """Record sample ``k``'s reading ages from the rig's per-channel sample times.
+
+        Parameters
+        ----------
+        k : int
+            Sample index.
+        t : float
+            The sample's time on the rig's clock [s].
+        sample_times : (4,) array or None
+            When each channel of ``[x, p_a, p_b, p_s]`` was sampled, on the same clock [s]
+            (``rig.sample_times()``); None (a rig that does not tell) leaves the ages at 0, and
+            so does a NaN (a channel never delivered, which the supervisor faults on).
+        """
+        if sample_times is not None:
+            age = t - np.asarray(sample_times, dtype=np.float64)
+            self.ages_[k] = np.where(np.isfinite(age), age, 0.0)
+
     def segment(self, t: float, label: str, kind: str, params: Mapping[str, Any]) -> None:
         """Record the start of an experiment segment."""
         self.segments_.append((float(t), label, kind, dict(params)))
@@ -84,7 +111,7 @@ class Recording:
         """Keep the first ``n`` samples (a run that stopped early), and the segments that
         start within them."""
         self.n = n
-        for name in ("sensors_", "duties_", "truth_", "reference_", "state_"):
+        for name in ("sensors_", "duties_", "ages_", "truth_", "reference_", "state_"):
             arr = getattr(self, name)
             if arr is not None:
                 setattr(self, name, arr[:n])
@@ -138,6 +165,9 @@ class Recording:
                 w.write("/experiment/segment", t_seg,
                         {"label": label, "kind": kind, "params": params})
             w.write_many("/rig/sensors", t, dict(zip(SENSOR_FIELDS, sensors.T, strict=True)))
+            if self.ages_.size and np.abs(self.ages_).max() > AGE_RESOLUTION:
+                w.write_many("/rig/sensor_age", t,
+                             dict(zip(SENSOR_FIELDS, np.round(self.ages_, 9).T, strict=True)))
             w.write_many("/rig/valves", t,
                          {f"u_{v}": col for v, col in zip(VALVES, duties.T, strict=True)})
             if self.truth_ is not None:

@@ -35,6 +35,7 @@ from typing import Any
 from pneutune.control.constants import LOG_SCHEMA, RIG_KEYS
 
 __all__ = [
+    "AGE_RESOLUTION",
     "EVENT_LEVELS",
     "REQUIRED_TOPICS",
     "RIG_NUMBER_KEYS",
@@ -50,6 +51,10 @@ __all__ = [
 
 #: Topics that every run log must contain (contract 1).
 REQUIRED_TOPICS: tuple[str, ...] = ("/rig/sensors", "/rig/valves")
+#: Reading ages (``/rig/sensor_age``) up to this are a clock's rounding, not a sampling skew
+#: [s]: a driver clocked in Unix time resolves 0.24 us. A run whose ages all stay within it
+#: writes no ``/rig/sensor_age``.
+AGE_RESOLUTION = 1.0e-6
 #: Values of ``/rig/events`` field ``level``.
 EVENT_LEVELS: tuple[str, ...] = ("info", "warning", "error")
 #: The keys of the ``rig`` metadata record that hold decimal numbers (all but ``pwm_update``).
@@ -162,6 +167,22 @@ _SPEC_LIST: tuple[TopicSpec, ...] = (
             _number("p_a", "Pressure in chamber A (rodless side) [Pa, absolute]."),
             _number("p_b", "Pressure in chamber B (rod side) [Pa, absolute]."),
             _number("p_s", "Supply pressure [Pa, absolute]."),
+        ),
+    ),
+    TopicSpec(
+        "/rig/sensor_age",
+        "pneutune.log.RigSensorAge",
+        "Age of each /rig/sensors value at its message's time: the message time minus the "
+        "time the channel was sampled, one message per /rig/sensors message at the same log "
+        "time. Written when the rig reports per-channel sample times (a multiplexed ADC, a "
+        "fieldbus that polls the transmitters in turn) and some channel was not sampled at "
+        "its message's time; identify then interpolates each channel to the message times. "
+        "Absent, every reading counts as sampled at its message's time.",
+        (
+            _number("x", "Age of the position reading [s]."),
+            _number("p_a", "Age of the chamber-A pressure reading [s]."),
+            _number("p_b", "Age of the chamber-B pressure reading [s]."),
+            _number("p_s", "Age of the supply pressure reading [s]."),
         ),
     ),
     TopicSpec(

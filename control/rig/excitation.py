@@ -291,7 +291,7 @@ def execute_protocol(rig: Rig, segments: Sequence[Segment], band: float, *,
                 t = k * Ts
                 try:
                     y = rig.read()
-                    stamps = rig.sample_times() if supervisor is not None else None
+                    stamps = rig.sample_times()
                 except RigIOError as exc:
                     fault = Event(t, "error", "rig_io", f"reading the rig failed: {exc}")
                     break
@@ -303,6 +303,7 @@ def execute_protocol(rig: Rig, segments: Sequence[Segment], band: float, *,
                     if fault is not None:
                         break
                 rec.sensors_[k] = y
+                rec.sample_ages(k, t, stamps)
                 if truth is not None:
                     rec.truth_[k] = truth()
                 control = j % per_control == 0

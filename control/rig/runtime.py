@@ -172,10 +172,13 @@ class _LoopLog:
         if rec.reference_ is not None:
             rec.reference_[:] = ref
 
-    def sample(self, k: int, sensors: np.ndarray, duties: np.ndarray,
-               state: np.ndarray) -> None:
-        """Record sample ``k``: its readings, the duties written and the controller state."""
+    def sample(self, k: int, sensors: np.ndarray, duties: np.ndarray, state: np.ndarray,
+               t: float = 0.0, sample_times: np.ndarray | None = None) -> None:
+        """Record sample ``k``: its readings, the duties written and the controller state;
+        with ``sample_times`` (``rig.sample_times()`` on the loop's clock, ``t`` the sample's
+        time there) also the readings' ages."""
         self.sensors[k] = sensors
+        self.rec.sample_ages(k, t, sample_times)
         self.duties[k] = duties
         self.state[k, :] = state[LOG_INDEX]
         if self.truth is not None and self.truth_fn is not None:
@@ -373,7 +376,7 @@ def run_loop(rig: Rig, cfg_vec: np.ndarray, reference: np.ndarray,
             t_step_end = clock()
             _write_duties(rig, k, t, duties)
             t_written = clock()
-            log.sample(k, s, duties, cs)
+            log.sample(k, s, duties, cs, t, stamps)
             if supervisor is not None:
                 events.extend(supervisor.check_estimates(t, float(s[3]), cs[S_THETA:S_THETA + 6]))
             n_done = k + 1

@@ -58,6 +58,10 @@ State ``[x, v, p_a, p_b, z]``.
 * Sensors (``R``): ``x`` + N(0, x_noise), ``p_a``, ``p_b``, ``p_s`` + N(0, p_noise), one draw
   per sample (a repeated ``R`` in one sample returns the same values), seeded by ``--seed``; each
   channel's sample time is the sample's ``t``. ``p_s`` is constant.
+* A multiplexed ADC (``--channel-skew FX FA FB FS``, default all 0): channel i is sampled
+  ``F_i`` sample periods before the sample's ``t`` (each ``F_i`` in [0, 1) and a whole number of
+  RK4 steps), its reading is the state at that instant and its sample time says so. The first
+  sample, before any step, reads the initial state at ``t`` = 0.
 * Initial state: at rest, both chambers at ``p0``, ``z = 0``, at mid-stroke, except
   ``square-0.5hz`` at x = 6 mm where its reference starts (``--x0`` overrides). An experiment's
   name (``identification``, ``commissioning``: what ``record`` puts in ``{scenario}``) is the
@@ -523,20 +527,26 @@ class CylinderSim:
         Initial piston position [m]; default ``START_X`` of the scenario, else mid-stroke.
     sample_period : float, optional
         Sample (and tick) every this many seconds, dividing the plant's ``Ts``; default ``Ts``.
+    channel_skew : sequence of 4 floats, optional
+        How many sample periods before each sample's time channels x, p_a, p_b, p_s are
+        sampled (a multiplexed ADC); each in [0, 1) and a whole number of RK4 steps.
 
     Raises
     ------
     PlantError
-        When ``sample_period`` does not divide the plant's ``Ts``.
+        When ``sample_period`` does not divide the plant's ``Ts``, or a skew is out of range
+        or falls between RK4 steps.
     """
 
     def __init__(self, plant: dict[str, Any], scenario: str, seed: int,
-                 x_start: float | None = None, sample_period: float | None = None) -> None:
+                 x_start: float | None = None, sample_period: float | None = None,
+                 channel_skew: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+                 ) -> None:
         self.plant = plant
         self.control_Ts = float(plant["Ts"])
         if sample_period is not None and not divides(float(sample_period), self.control_Ts):
-            raise PlantError(f"the sample period {sample_period!r} s must divide the plant's Ts "
-                             f"= {self.control_Ts!r} s into whole samples")
+            raise PlantError(f"--sample-period: the sample period {sample_period!r} s must "
+                             f"divide the plant's Ts = {self.control_Ts!r} s into whole samples")
         self.Ts = self.control_Ts if sample_period is None else float(sample_period)
         self.nsub = substeps_for(plant, sample_period)
         self.mass = moving_mass(plant, scenario)
@@ -551,6 +561,16 @@ class CylinderSim:
         self._noise_k = -1
         self._noise = (0.0, 0.0, 0.0, 0.0)
         self._rhs = self._make_rhs()
+        # the RK4 step (counted back from the sample) at which each channel is sampled
+        self.skew_steps = []
+        for f in channel_skew:
+            m = round(f * self.nsub)
+            if not 0.0 <= f < 1.0 or abs(m - f * self.nsub) > 1e-9:
+                raise PlantError(f"--channel-skew: a channel skew of {f!r} sample periods must "
+                                 f"be in [0, 1) and a multiple of 1/{self.nsub} (one RK4 step)")
+            self.skew_steps.append(m)
+        self._sampled = [self.state[0], self.state[2], self.state[3]]
+        self._sample_t = [0.0, 0.0, 0.0, 0.0]
 
     @property
     def t(self) -> float:
@@ -664,6 +684,11 @@ class CylinderSim:
         rhs = self._rhs
         x, v, pa, pb, z = self.state
         fe = self.f_ext
+        skew = self.skew_steps
+        sampled = self._sampled
+        for c, m in enumerate(skew[:3]):
+            if m == n:
+                sampled[c] = (x, pa, pb)[c]
         for i in range(n):
             j = 2 * i
             ta = t0 + i * h
@@ -683,11 +708,15 @@ class CylinderSim:
             pa += w * (k1[2] + 2.0 * (k2[2] + k3[2]) + k4[2])
             pb += w * (k1[3] + 2.0 * (k2[3] + k3[3]) + k4[3])
             z += w * (k1[4] + 2.0 * (k2[4] + k3[4]) + k4[4])
+            for c, m in enumerate(skew[:3]):
+                if m == n - 1 - i:
+                    sampled[c] = (x, pa, pb)[c]
         if not all(map(math.isfinite, (x, v, pa, pb, z))):
             raise FloatingPointError("the integration diverged")
         self.state = [x, v, pa, pb, z]
         self.last_y = [o0[-1], o1[-1], o2[-1], o3[-1]]
         self.k += 1
+        self._sample_t = [self.t - m * h for m in skew]
         return self.t
 
     def read(self) -> tuple[float, ...]:
@@ -703,9 +732,9 @@ class CylinderSim:
             self._noise = tuple(float(e) for e in self.rng.standard_normal(4) * scale)
             self._noise_k = self.k
         t = self.t
-        x, _, pa, pb, _ = self.state
+        x, pa, pb = self._sampled
         nx, na, nb, ns = self._noise
-        return (t, x + nx, pa + na, pb + nb, P_S + ns, t, t, t, t)
+        return (t, x + nx, pa + na, pb + nb, P_S + ns, *self._sample_t)
 
     def truth(self) -> tuple[float, ...]:
         """The ``T`` reply at the current sample: v, a, F_friction, F_ext, mdot_a, mdot_b.
@@ -826,6 +855,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample-period", type=float, default=None, metavar="S",
                     help="sample and tick every S seconds, dividing the plant's Ts (default Ts); "
                          "the hello's Ts is S, its rig block keeps the plant's Ts")
+    ap.add_argument("--channel-skew", type=float, nargs=4, default=(0.0, 0.0, 0.0, 0.0),
+                    metavar=("FX", "FA", "FB", "FS"),
+                    help="a multiplexed ADC: sample x, p_a, p_b, p_s this many sample periods "
+                         "before each sample's time, and say so in the sample times")
     ap.add_argument("--print-plant", action="store_true",
                     help="print the complete plant and the scenario's moving mass as JSON "
                          "and exit, serving nothing")
@@ -842,9 +875,10 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"plant": plant, "moving_mass": moving_mass(plant, args.scenario)}))
         return 0
     try:
-        sim = CylinderSim(plant, args.scenario, args.seed, args.x0, args.sample_period)
+        sim = CylinderSim(plant, args.scenario, args.seed, args.x0, args.sample_period,
+                          tuple(args.channel_skew))
     except PlantError as exc:
-        print(f"other_sim_driver: --sample-period: {exc}", file=sys.stderr)
+        print(f"other_sim_driver: {exc}", file=sys.stderr)
         return 2
     try:
         return serve(sim, sys.stdin.buffer, sys.stdout.buffer)
