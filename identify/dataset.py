@@ -504,7 +504,11 @@ def load_dataset(path: str | os.PathLike[str] | RunLog) -> Dataset:
     path = log.path
     rig = _rig_from_log(log)
     h = sample_period(log, rig)
-    sensors, aligned = align_channels(log["/rig/sensors"], log.topics.get("/rig/sensor_age"))
+    try:
+        sensors, aligned = align_channels(log["/rig/sensors"],
+                                          log.topics.get("/rig/sensor_age"))
+    except ValueError as exc:
+        raise IdentificationError(path, str(exc)) from None
     sensors, repairs = regular_samples(sensors, h)
     repairs = "; ".join(n for n in (aligned, repairs) if n)
     check_plausible(log, sensors, rig, h)

@@ -60,11 +60,24 @@ def align_channels(sensors: pd.DataFrame, ages: pd.DataFrame | None) -> tuple[pd
         The aligned readings (same index and columns) and a note of the shift applied to each
         channel ("" when every age is within the clock's rounding,
         :data:`~pneutune.control.logs.topics.AGE_RESOLUTION`).
+
+    Raises
+    ------
+    ValueError
+        A negative age (a reading sampled after its message's time), naming the field and
+        the log time.
     """
     if ages is None or sensors.shape[0] < 2:
         return sensors, ""
     t = sensors.index.to_numpy(dtype=float)
     age = _ages_at(sensors, ages)
+    bad = age < -AGE_RESOLUTION
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise ValueError(f"/rig/sensor_age.{_CHANNELS[col][0]} is {age[row, col]:.6g} s at log "
+                         f"time {t[row]:.6f} s; an age is the message's time minus the time the "
+                         "channel was sampled, never negative (a reading cannot be sampled after "
+                         "its message)")
     out = sensors.copy()
     said = []
     for j, (col, label) in enumerate(_CHANNELS):

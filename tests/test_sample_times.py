@@ -29,7 +29,7 @@ from pneutune.control.rig.scenario_run import run_scenario, sim_rig_for
 from pneutune.control.sim.scenarios import SCENARIOS, Scenario
 from pneutune.identify import dataset as dataset_module
 from pneutune.identify.cli import main as identify_main
-from pneutune.identify.dataset import load_dataset
+from pneutune.identify.dataset import IdentificationError, load_dataset
 from pneutune.identify.sample_times import align_channels
 
 RIG: dict[str, float | str] = {
@@ -203,3 +203,13 @@ def test_deploy_logs_the_ages_its_rig_reports() -> None:
     assert np.array_equal(skewed.sensors_, plain.sensors_)
     assert np.allclose(skewed.ages_, [1e-3, 0.0, 0.0, 0.0], atol=1e-12)
     assert not plain.ages_.any()
+
+
+def test_a_negative_age_is_refused_naming_the_field_and_time(tmp_path) -> None:
+    rec = _recording(800, SKEW)
+    rec.ages_[300, 2] = -1e-3
+    rec.save(tmp_path / "bad.mcap", RIG, {"sample_period": repr(H)})
+    with pytest.raises(IdentificationError) as info:
+        load_dataset(tmp_path / "bad.mcap")
+    text = str(info.value)
+    assert "bad.mcap" in text and "/rig/sensor_age.p_b is -0.001 s at log time 0.150000 s" in text
