@@ -2,7 +2,8 @@
 simulated seconds per wall second of the objective's closed loops.
 
 Runs the ``tune`` console command (a fresh process: imports and loading the cached numba code
-included) on a fresh study in a temporary folder, on ``--model`` (default: the command's own
+included, after a 2-trial warm-up run of each code that lets numba compile outside the
+timing) on a fresh study in a temporary folder, on ``--model`` (default: the command's own
 default ``reports/identify/model.yaml`` if it exists, else the truth model of the default plant,
 ``model_from_plant(PlantConfig())``; ``--model truth`` forces the latter), and prints:
 
@@ -42,8 +43,7 @@ per model the wall times (min..max) and the best objective of every pruner and s
 Against an older revision (``--baseline REV``): the same commands are also run by the code of
 ``REV`` (a temporary ``git worktree``, put first on ``PYTHONPATH``, with the installed compiled
 control law: ``REV``'s ``control/law/c`` must be the current one), alternating with the current
-code in every round, each warmed up once (numba
-compiles outside the timing). The table then gives both wall times and both best objectives per
+code in every round. The table then gives both wall times and both best objectives per
 seed: a speed-up that keeps the objective's meaning finds the same best trial, or one no worse,
 on the same draws and seeds.
 
@@ -260,12 +260,13 @@ def main() -> int:
         walls: dict[tuple[str, str, str], list[float]] = {}
         best: dict[tuple[str, str, str, int], float] = {}
         k = 0
+        # a source change makes numba compile the kernels anew in the first process (10-20 s):
+        # each code runs a 2-trial tune first, outside the timing
+        for code, env in codes.items():
+            run_tune(models[0][1], tmp / f"warm-{code}", 2, 1, 1, pruners[0], env)
+            shutil.rmtree(tmp / f"warm-{code}", ignore_errors=True)
         for name, path in models:
             print(f"model {name}")
-            if len(codes) > 1:  # numba compiles each code's kernels once, outside the timing
-                for code, env in codes.items():
-                    run_tune(path, tmp / f"warm-{code}", 2, 1, 1, pruners[0], env)
-                    shutil.rmtree(tmp / f"warm-{code}", ignore_errors=True)
             for rnd in range(args.rounds):
                 for seed in seeds:
                     runs = [(code, pruner) for code in codes for pruner in pruners]

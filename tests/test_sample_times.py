@@ -126,24 +126,25 @@ def _recording(n: int, skew: np.ndarray | None) -> Recording:
     return rec
 
 
-def test_record_writes_the_ages_only_for_a_skewed_rig(tmp_path) -> None:
+@pytest.fixture
+def logs(tmp_path) -> tuple[Path, Path]:
+    """The same signals logged by a skewed rig and by one that samples every channel at once."""
     run = {"sample_period": repr(H)}
     _recording(800, SKEW).save(tmp_path / "skew.mcap", RIG, run)
     _recording(800, None).save(tmp_path / "plain.mcap", RIG, run)
-    skewed = read_run_log(tmp_path / "skew.mcap")
-    plain = read_run_log(tmp_path / "plain.mcap")
+    return tmp_path / "skew.mcap", tmp_path / "plain.mcap"
+
+
+def test_record_writes_the_ages_only_for_a_skewed_rig(logs) -> None:
+    skewed, plain = (read_run_log(path) for path in logs)
     assert not plain.has("/rig/sensor_age")
     ages = skewed["/rig/sensor_age"]
     assert np.array_equal(ages.index.to_numpy(), skewed["/rig/sensors"].index.to_numpy())
     assert np.allclose(ages.to_numpy(), SKEW, atol=1e-12)
 
 
-def test_identify_reads_a_skewed_log_as_the_unskewed_one(tmp_path) -> None:
-    run = {"sample_period": repr(H)}
-    _recording(800, SKEW).save(tmp_path / "skew.mcap", RIG, run)
-    _recording(800, None).save(tmp_path / "plain.mcap", RIG, run)
-    skewed = load_dataset(tmp_path / "skew.mcap")
-    plain = load_dataset(tmp_path / "plain.mcap")
+def test_identify_reads_a_skewed_log_as_the_unskewed_one(logs) -> None:
+    skewed, plain = (load_dataset(path) for path in logs)
     inner = slice(2, -2)
     # the stored log rounds x to 1 nm and pressures to 1 mPa; interpolation adds < 0.1 um, 12 Pa
     assert np.abs(skewed.x - plain.x)[inner].max() < 1.0e-7
