@@ -134,6 +134,44 @@ def longest_run(flags: np.ndarray) -> int:
     return int(np.max(edges[1::2] - edges[0::2])) if edges.size else 0
 
 
+def window_sandwich_sd(J: np.ndarray, r: np.ndarray, JtJ_inv: np.ndarray,
+                       blocks: tuple[int, int], lag: int) -> np.ndarray:
+    """Standard errors of a least-squares fit whose residuals are correlated in time and
+    unequal in size: the Newey-West sandwich ``A S A``, ``A = (J^T J)^-1``, ``S`` the
+    Bartlett-weighted sum of the score products ``J_t r_t r_s J_s^T`` for ``|t - s| <= lag``.
+
+    Parameters
+    ----------
+    J : (n, k) array
+        Jacobian of the residuals at the solution.
+    r : (n,) array
+        Residuals at the solution.
+    JtJ_inv : (k, k) array
+        ``(J^T J)^-1`` (or its pseudo-inverse).
+    blocks : (int, int)
+        Ends of the time-ordered runs of rows: rows ``[0, blocks[0])`` are one (chamber A's
+        windows), ``[blocks[0], blocks[1])`` another (chamber B's); rows from ``blocks[1]`` on
+        are independent (priors).
+    lag : int
+        Longest lag with weight (Bartlett: ``1 - l / (lag + 1)``).
+
+    Returns
+    -------
+    (k,) array
+        The standard errors.
+    """
+    J = np.asarray(J, dtype=float)
+    g = J * np.asarray(r, dtype=float)[:, None]
+    S = g.T @ g
+    for lo, hi in ((0, blocks[0]), (blocks[0], blocks[1])):
+        gb = g[lo:hi]
+        for lg in range(1, min(lag + 1, hi - lo)):
+            G = gb[lg:].T @ gb[:-lg]
+            S += (1.0 - lg / (lag + 1.0)) * (G + G.T)
+    cov = JtJ_inv @ S @ JtJ_inv
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
 class ValveIdentifier(Identifier):
     """C and b per valve, the leak, D_a, D_b and the PWM curves (one per valve).
 
@@ -543,15 +581,28 @@ class ValveIdentifier(Identifier):
         wt = self.window_ * data.Ts
         self.D_max_ = np.array([np.max(np.abs(res[:na])), np.max(np.abs(res[na:]))]) / wt
         # Gauss-Newton standard errors; overlapping windows share samples, so inflate by
-        # sqrt(window / stride) (the number of windows each sample appears in).
+        # sqrt(window / stride) (the number of windows each sample appears in). The windows'
+        # residuals are not alike, though: where the averaged flow model misses most (a valve's
+        # charges through a bent curve) they are larger and correlated over more than the
+        # overlap, and there the Gauss-Newton error is too small. A valve's C and b errors are
+        # the larger of it and the Newey-West sandwich's (window_sandwich_sd), unless the fit
+        # put its b at a bound: that estimate is no normal variate, and its C and b describe
+        # the valve with what bends its curve in series (the note below), whose fitted ranges
+        # tune does better with (docs/identification.md, "Standard errors").
         J = sol.jac
         dof = max(1, len(res) - len(theta))
         s2 = float(np.sum(sol.fun**2)) / dof
         try:
-            cov = np.linalg.pinv(J.T @ J) * s2 * (self.window_ / self.stride)
+            JtJ_inv = np.linalg.pinv(J.T @ J)
+            cov = JtJ_inv * s2 * (self.window_ / self.stride)
         except np.linalg.LinAlgError:  # pragma: no cover
+            JtJ_inv = None
             cov = np.full((len(theta), len(theta)), np.nan)
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd_hw = np.zeros_like(sd)
+        if JtJ_inv is not None and len(sol.fun) == na + len(self._k0[1]) + 4:
+            lag = 2 * int(np.ceil(self.window_ / self.stride))
+            sd_hw = window_sandwich_sd(J, sol.fun, JtJ_inv, (na, na + len(self._k0[1])), lag)
         for ch in range(2):
             if not np.isfinite(self.D_std_[ch]):  # no closed-valve stretch: D from the NLS,
                 # where it also absorbs what the flow model misses; its error is at least |D|
@@ -564,6 +615,9 @@ class ValveIdentifier(Identifier):
         self.b_std_ = sd[1:8:2]
         for i, name in enumerate(VALVES):
             at_bound = self.b_[i] < 1e-3 or self.b_[i] > lo[1] + hi[1] - 1e-3
+            if not at_bound:
+                self.C_std_[i] = max(self.C_std_[i], sd_hw[2 * i] * _C_UNIT)
+                self.b_std_[i] = max(self.b_std_[i], sd_hw[2 * i + 1])
             if at_bound and self.full_open_s_[i] >= FULL_OPEN_PIN_S:
                 self.notes_.append(
                     f"valve {name}: the fit put b at its bound ({self.b_[i]:.3g}) although the "
