@@ -17,13 +17,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pneutune.control.logs.topics import AGE_RESOLUTION
+from pneutune.control.logs.topics import AGE_RESOLUTION, topic_fields
 
 __all__ = ["align_channels"]
 
-#: Channels of ``/rig/sensors`` and their names in notes.
-_CHANNELS: tuple[tuple[str, str], ...] = (("x", "x"), ("p_a", "p_a"), ("p_b", "p_b"),
-                                           ("p_s", "p_s"))
+#: The channels, as ``/rig/sensors`` and ``/rig/sensor_age`` name them.
+_CHANNELS: tuple[str, ...] = topic_fields("/rig/sensor_age")
 
 
 def _ages_at(sensors: pd.DataFrame, ages: pd.DataFrame) -> np.ndarray:
@@ -31,11 +30,10 @@ def _ages_at(sensors: pd.DataFrame, ages: pd.DataFrame) -> np.ndarray:
     message has no age message at its time)."""
     ts = sensors.index.to_numpy()
     ta = ages.index.to_numpy()
-    cols = [c for c, _ in _CHANNELS]
-    values = ages[cols].to_numpy(dtype=float)
+    values = ages[list(_CHANNELS)].to_numpy(dtype=float)
     if ts.shape == ta.shape and np.array_equal(ts, ta):
         return values
-    out = np.zeros((ts.size, len(cols)))
+    out = np.zeros((ts.size, len(_CHANNELS)))
     k = np.clip(np.searchsorted(ta, ts), 0, max(ta.size - 1, 0))
     if ta.size:
         hit = np.abs(ta[k] - ts) <= 0.5e-9  # the same nanosecond log time
@@ -74,13 +72,13 @@ def align_channels(sensors: pd.DataFrame, ages: pd.DataFrame | None) -> tuple[pd
     bad = age < -AGE_RESOLUTION
     if bad.any():
         row, col = np.argwhere(bad)[0]
-        raise ValueError(f"/rig/sensor_age.{_CHANNELS[col][0]} is {age[row, col]:.6g} s at log "
+        raise ValueError(f"/rig/sensor_age.{_CHANNELS[col]} is {age[row, col]:.6g} s at log "
                          f"time {t[row]:.6f} s; an age is the message's time minus the time the "
                          "channel was sampled, never negative (a reading cannot be sampled after "
                          "its message)")
     out = sensors.copy()
     said = []
-    for j, (col, label) in enumerate(_CHANNELS):
+    for j, col in enumerate(_CHANNELS):
         a = age[:, j]
         if not np.any(np.abs(a) > AGE_RESOLUTION):
             continue
@@ -91,7 +89,7 @@ def align_channels(sensors: pd.DataFrame, ages: pd.DataFrame | None) -> tuple[pd
         tau_s, val_s = tau[order], values[order]
         fresh = np.r_[True, np.diff(tau_s) > AGE_RESOLUTION]
         out[col] = np.interp(t, tau_s[fresh], val_s[fresh])
-        said.append(f"{label} {np.median(a) * 1e3:.3g} ms")
+        said.append(f"{col} {np.median(a) * 1e3:.3g} ms")
     if not said:
         return sensors, ""
     return out, ("sample times: /rig/sensor_age puts the readings behind their messages' times "
