@@ -939,3 +939,41 @@ def test_exp_neg_is_exp_to_the_last_bit_across_its_underflow_shortcut() -> None:
         g = (math.exp(-r * r) if alpha == 2.0 else math.exp(-r) if alpha == 1.0
              else math.exp(-math.exp(alpha * math.log(r))))
         assert stribeck_level(av, 120.0, 80.0, v_s, alpha) == 80.0 + 40.0 * g
+
+
+def test_stribeck_level_past_its_flat_ratio_is_eq2_to_the_last_bit() -> None:
+    """From stribeck_flat_ratio on, stribeck_level returns F_C without computing the Stribeck
+    term: Eq. (2) computed plainly must give F_C there to the last bit, and the level with the
+    ratio must equal the level without it at any speed (below, at and above the ratio), over
+    levels from 1 mN to 10 kN, Stribeck speeds of 0.1-100 mm/s and exponents of 0.3-10."""
+    from pneutune.control.physics.friction import stribeck_flat_ratio, stribeck_level
+
+    rng = np.random.default_rng(11)
+    flat_seen = 0
+    for _ in range(4000):
+        f_c = 10.0 ** rng.uniform(-3.0, 4.0)
+        f_s = f_c * float(rng.choice([1.0, 1.0 + 10.0 ** rng.uniform(-12.0, 1.0)]))
+        v_s = 10.0 ** rng.uniform(-4.0, -1.0)
+        alpha = float(rng.choice([1.0, 2.0, rng.uniform(0.3, 10.0)]))
+        r_flat = stribeck_flat_ratio(f_s, f_c, alpha)
+        assert 0.0 <= r_flat < math.inf
+        for r in (r_flat * rng.uniform(0.5, 1.0), r_flat, np.nextafter(r_flat, np.inf),
+                  r_flat * rng.uniform(1.0, 50.0)):
+            av = r * v_s
+            if av <= 0.0:  # F_S = F_C: the ratio is 0, and v = 0 is no sliding speed
+                continue
+            ratio = av / v_s
+            plain = (f_c + (f_s - f_c) * (math.exp(-ratio * ratio) if alpha == 2.0 else
+                                          math.exp(-ratio) if alpha == 1.0 else
+                                          math.exp(-math.exp(alpha * math.log(ratio)))))
+            got = stribeck_level(av, f_s, f_c, v_s, alpha, r_flat)
+            assert got == stribeck_level(av, f_s, f_c, v_s, alpha) == plain
+            if ratio >= r_flat:
+                assert got == f_c
+                flat_seen += 1
+    assert flat_seen > 4000  # the shortcut was taken, not only checked
+    # no flat ratio where no speed gives F_C exactly
+    assert stribeck_flat_ratio(50.0, 0.0, 2.0) == math.inf
+    assert stribeck_flat_ratio(40.0, 50.0, 2.0) == math.inf
+    assert stribeck_flat_ratio(60.0, 50.0, 0.0) == math.inf
+    assert stribeck_flat_ratio(math.nan, 50.0, 2.0) == math.inf

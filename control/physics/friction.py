@@ -2,7 +2,8 @@
 control law), vectorised numpy forms beside them (identification), tested to agree.
 
 * :func:`stribeck_force` / :func:`stribeck` - Eq. (2), the friction while sliding
-  (:func:`stribeck_level`: its Coulomb-plus-Stribeck part).
+  (:func:`stribeck_level`: its Coulomb-plus-Stribeck part; :func:`stribeck_flat_ratio`: the
+  speed ratio from which that part is F_C to the last bit).
 * :func:`smooth_sign` / :func:`smooth_sign_array` - S_f of Eq. (4), ``(2/pi) arctan(1000 v)``.
 * :func:`smooth_friction` - Eqs. (3)-(4), the controller's smooth approximation
   ``b_v v + A_f S_f(v)``.
@@ -46,13 +47,54 @@ def exp_neg(q: float) -> float:
     return math.exp(-q)
 
 
+def stribeck_flat_ratio(F_S: float, F_C: float, alpha: float) -> float:
+    """The speed ratio ``|v|/v_s`` from which Eq. (2)'s level is ``F_C`` to the last bit [-].
+
+    In double precision ``F_C + (F_S - F_C) exp(-(|v|/v_s)^alpha)`` rounds to ``F_C`` once the
+    Stribeck term is below half a unit in the last place of ``F_C``. This returns a ratio from
+    which the computed term is below a tenth of that unit (margins for the rounding of the
+    power, ``exp`` and the product), so :func:`stribeck_level` may return ``F_C`` there without
+    the logarithm and the two exponentials, and return the same bits. The plant computes it
+    once per parameter set (``plant.params.set_step_limits``).
+
+    Parameters
+    ----------
+    F_S, F_C : float
+        Stiction and Coulomb levels [N].
+    alpha : float
+        Stribeck exponent [-].
+
+    Returns
+    -------
+    float
+        >= 0; ``inf`` when no speed gives ``F_C`` exactly (F_C <= 0, F_S < F_C, alpha <= 0 or
+        a non-finite parameter).
+    """
+    dF = F_S - F_C
+    if not (math.isfinite(F_S) and math.isfinite(F_C) and math.isfinite(alpha)) \
+            or F_C <= 0.0 or dF < 0.0 or alpha <= 0.0:
+        return math.inf
+    if dF == 0.0:
+        return 0.0
+    g_max = 0.25 * math.ulp(F_C) / dF  # the term (F_S - F_C) g stays below a quarter ulp
+    q_min = 1.0 - math.log(g_max)  # exp(-q) <= g_max / e: a margin for exp's rounding
+    if q_min <= 0.0:
+        return 0.0
+    return math.exp(math.log(q_min) / alpha) * (1.0 + 1.0e-9)
+
+
 @njit(cache=True)
-def stribeck_level(av: float, F_S: float, F_C: float, v_s: float, alpha: float) -> float:
+def stribeck_level(av: float, F_S: float, F_C: float, v_s: float, alpha: float,
+                   r_flat: float = math.inf) -> float:
     """The Coulomb-plus-Stribeck level ``F_C + (F_S - F_C) exp(-(|v|/v_s)^alpha)`` of Eq. (2) at
     speed ``av = |v|`` [N]: the sliding friction without its viscous term (also the LuGre
-    model's g(v), which makes its steady sliding Eq. (2))."""
+    model's g(v), which makes its steady sliding Eq. (2)). ``r_flat``
+    (:func:`stribeck_flat_ratio`) lets it return ``F_C`` from that speed ratio on without
+    computing the term, with the same result."""
     if av > 0.0:
         ratio = av / v_s
+        if ratio >= r_flat:
+            return F_C
         if alpha == 2.0:
             g = exp_neg(ratio * ratio)
         elif alpha == 1.0:
@@ -67,7 +109,7 @@ def stribeck_level(av: float, F_S: float, F_C: float, v_s: float, alpha: float) 
 
 @njit(cache=True)
 def stribeck_force(v: float, direction: float, F_S: float, F_C: float, v_s: float,
-                   alpha: float, b_v: float) -> float:
+                   alpha: float, b_v: float, r_flat: float = math.inf) -> float:
     """Sliding friction of Eq. (2) [N].
 
     Parameters
@@ -85,8 +127,10 @@ def stribeck_force(v: float, direction: float, F_S: float, F_C: float, v_s: floa
         Stribeck exponent [-].
     b_v : float
         Viscous coefficient [N s/m].
+    r_flat : float, optional
+        :func:`stribeck_flat_ratio` of F_S, F_C and alpha (the same result, sooner).
     """
-    return stribeck_level(abs(v), F_S, F_C, v_s, alpha) * direction + b_v * v
+    return stribeck_level(abs(v), F_S, F_C, v_s, alpha, r_flat) * direction + b_v * v
 
 
 #: Lowest speed, as a fraction of v_s, at which the Stribeck slope is evaluated: for alpha < 1 the

@@ -59,6 +59,7 @@ import numpy as np
 
 from pneutune.control.logs.topics import topic_fields
 from pneutune.control.numba_cache import njit
+from pneutune.control.numba_views import unowned
 from pneutune.control.physics.flow import (
     iso6358_flow,
     signed_flow,
@@ -99,6 +100,7 @@ from pneutune.control.plant.params import (
     P_PNOISE,
     P_PSTEP,
     P_R,
+    P_RFLAT,
     P_RPEAK,
     P_SIGMA0,
     P_SIGMA1,
@@ -194,7 +196,8 @@ def _deriv(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: floa
         # a velocity that ends the step past zero is the event, located inside the step by
         # _integrate.
         dx = v
-        ff = stribeck_force(v, direction, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
+        ff = stribeck_force(v, direction, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV],
+                            p[P_RFLAT])
         dv = (applied_force(p, pa, pb, f_ext) - ff) / p[P_M]
     dpa = (-p[P_N] * pa * p[P_AA] * dx + nRT * ma) / Va + p[P_DA]
     dpb = (p[P_N] * pb * p[P_AB] * dx + nRT * mb) / Vb + p[P_DB]
@@ -231,13 +234,14 @@ def _deriv_rig(p: np.ndarray, s: np.ndarray, x: float, v: float, pa: float, pb: 
         # LuGre: the bristles' deflection z carries the friction; no direction is frozen
         dx = v
         av = abs(v)
-        g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA])
+        g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_RFLAT])
         dz = v - p[P_SIGMA0] * av * z / g
         ff = p[P_SIGMA0] * z + p[P_SIGMA1] * dz + p[P_BV] * v
         dv = (applied_force(p, pa, pb, f_ext) - ff) / p[P_M]
     else:  # Eq. (2), the direction frozen over the step as in _deriv
         dx = v
-        ff = stribeck_force(v, direction, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV])
+        ff = stribeck_force(v, direction, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_BV],
+                            p[P_RFLAT])
         dv = (applied_force(p, pa, pb, f_ext) - ff) / p[P_M]
     dta = 0.0
     dtb = 0.0
@@ -384,7 +388,7 @@ def _lugre_step(p: np.ndarray, v: float) -> float:
     h = p[P_DTLUGRE]
     av = abs(v)
     if av > 0.0:
-        g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA])
+        g = stribeck_level(av, p[P_FS], p[P_FC], p[P_VS], p[P_ALPHA], p[P_RFLAT])
         h_z = p[P_STEPK] * g / (p[P_SIGMA0] * av)
         if h_z < h:
             h = h_z
@@ -639,6 +643,9 @@ def advance(p: np.ndarray, s: np.ndarray, t_end: float, p_s: float,
     force_steps : ndarray
         (K, 2) external force levels [[t, F], ...].
     """
+    # the step's functions take p and s by the thousand: views without reference counting
+    p = unowned(p)
+    s = unowned(s)
     t = s[S_T]
     if p[P_SUPC] > 0.0 and s[S_PSUP] <= 0.0:
         s[S_PSUP] = p_s  # the manifold starts charged

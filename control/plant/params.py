@@ -14,7 +14,11 @@ import numpy as np
 
 from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ConfigError
-from pneutune.control.physics.friction import stribeck_peak, stribeck_stiffness
+from pneutune.control.physics.friction import (
+    stribeck_flat_ratio,
+    stribeck_peak,
+    stribeck_stiffness,
+)
 
 P_AA, P_AB, P_XMIN, P_XMAX, P_V0A, P_V0B, P_P0, P_T0, P_N, P_R = range(10)
 P_TS, P_TPWM, P_LATCHED, P_M, P_FS, P_FC, P_VS, P_ALPHA, P_BV = range(10, 19)
@@ -41,7 +45,8 @@ P_SUPC, P_SUPB, P_SUPVOL = range(74, 77)  # supply line (0 conductance: a stiff 
 P_GENERAL = 77  # 1.0 when the flows need more than Eq. (7) per valve (lag, line, heat, supply)
 P_EXTSTATE = 78  # 1.0 when states beyond the paper's are integrated (heat, LuGre, supply)
 P_STEPK = 79  # the step rule's factor: h * stiffness / M at most this (STEP_STIFFNESS) [-]
-N_PARAMS = 80
+P_RFLAT = 80  # from this |v|/v_s on Eq. (2)'s level is F_C (physics.friction.stribeck_flat_ratio)
+N_PARAMS = 81
 #: RK4 keeps ``h * stiffness / M`` at most this while sliding (its stability limit on the real
 #: axis is 2.79; at 2 the viscous mode's amplification per step is 0.33, no overshoot).
 #: :func:`pack_plant` copies it into ``P_STEPK``, which the compiled step rule reads, so that
@@ -80,8 +85,8 @@ class PlantParams:
 
 
 def set_step_limits(v: np.ndarray) -> None:
-    """Fill ``P_RPEAK``, ``P_DTMIN`` and ``P_UFREE`` of a parameter vector from its friction,
-    mass and ``P_DT`` (call again after changing any of them).
+    """Fill ``P_RPEAK``, ``P_DTMIN``, ``P_UFREE`` and ``P_RFLAT`` of a parameter vector from its
+    friction, mass and ``P_DT`` (call again after changing any of them).
 
     ``P_DTMIN = min(P_DT, P_STEPK M / k_max)``, k_max the largest |dF_f/dv| at any speed
     (:func:`~pneutune.control.physics.friction.stribeck_stiffness` at u = 0): the shortest step
@@ -91,6 +96,7 @@ def set_step_limits(v: np.ndarray) -> None:
     evaluation of the slope. ``P_STEPK`` must be set (:func:`pack_plant` sets it).
     """
     v[P_RPEAK] = stribeck_peak(v[P_ALPHA])
+    v[P_RFLAT] = stribeck_flat_ratio(v[P_FS], v[P_FC], v[P_ALPHA])
 
     def k(u: float) -> float:
         return stribeck_stiffness(u, v[P_FS], v[P_FC], v[P_VS], v[P_ALPHA], v[P_BV], v[P_RPEAK])
