@@ -24,8 +24,9 @@ the sensor and duty arrays of full tune evaluations). A function may still ask f
 ``error_model="python"``.
 
 The one function compiled otherwise is the ufunc form of the ISO 6358 flow
-(:func:`pneutune.control.physics.flow.signed_flow_array`, ``vectorize(cache=True)``): numba's own
-locator caches it beside its module, keyed on that module, which holds everything it calls.
+(:func:`pneutune.control.physics.flow.signed_flow_array`, ``vectorize(cache=True)``, made on
+first use): numba's own locator caches it beside its module, keyed on that module, which holds
+everything it calls.
 """
 
 from __future__ import annotations

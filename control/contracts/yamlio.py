@@ -92,10 +92,12 @@ def load_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ConfigError(str(p), "", f"cannot read the file ({exc})") from None
     reader = _reader()
     try:
-        problem = _check_nodes(reader.compose(text))
+        root = reader.compose(text)
+        problem = _check_nodes(root)
         if problem:
             raise ConfigError(str(p), "", problem)
-        data = reader.load(text)
+        # built from the checked nodes: parsing the text again took as long as composing it
+        data = None if root is None else reader.constructor.construct_document(root)
     except YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

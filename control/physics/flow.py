@@ -23,7 +23,9 @@ pressure difference reverses, using the same equation with the roles of the port
 
 from __future__ import annotations
 
+import functools
 import math
+from typing import Any
 
 from numba import vectorize
 
@@ -105,7 +107,30 @@ def signed_flow_t(C: float, b: float, p_1: float, p_2: float, T_1: float, T_2: f
     return -iso6358_flow(C, b, p_2, p_1, T_2)
 
 
-@vectorize(["float64(float64, float64, float64, float64, float64)"], cache=True)
-def signed_flow_array(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
-    """:func:`signed_flow` as a numpy ufunc (broadcasts over arrays), for the identifiers."""
+def _signed_flow_scalar(C: float, b: float, p_1: float, p_2: float, T: float) -> float:
     return signed_flow(C, b, p_1, p_2, T)
+
+
+@functools.cache
+def _signed_flow_ufunc() -> Any:
+    """The ufunc of :func:`signed_flow_array`, made on first use: building it loads or compiles
+    it at once (about 0.3 s), which ``tune`` and ``simulate``, which never call it, need not
+    pay when they import this module."""
+    return vectorize(["float64(float64, float64, float64, float64, float64)"],
+                     cache=True)(_signed_flow_scalar)
+
+
+def signed_flow_array(C: Any, b: Any, p_1: Any, p_2: Any, T: Any) -> Any:
+    """:func:`signed_flow` as a numpy ufunc (broadcasts over arrays), for the identifiers.
+
+    Parameters
+    ----------
+    C, b, p_1, p_2, T : float or array
+        As :func:`signed_flow`'s, broadcast against each other.
+
+    Returns
+    -------
+    float or ndarray
+        Mass flow from port 1 to port 2 [kg/s].
+    """
+    return _signed_flow_ufunc()(C, b, p_1, p_2, T)

@@ -14,13 +14,13 @@ import math
 
 import numpy as np
 
-from pneutune.control.constants import T_REF
 from pneutune.control.numba_cache import njit
 from pneutune.control.physics.flow import signed_flow, signed_flow_k, signed_flow_t
 from pneutune.control.plant.illinois import illinois_update
 from pneutune.control.plant.params import (
     P_B,
     P_C,
+    P_KT,
     P_LEAKC,
     P_LINEB,
     P_LINEC,
@@ -43,7 +43,7 @@ def chamber_flows(p: np.ndarray, s: np.ndarray, pa: float, pb: float,
                   p_s: float) -> tuple[float, float]:
     """Net mass flows into chambers A and B [kg/s] with the valves as they are in ``s``
     (the paper's model: every valve fully open or closed, straight into its chamber)."""
-    k_T = math.sqrt(T_REF / p[P_T0])
+    k_T = p[P_KT]  # sqrt(T_ref / T0), computed once per plant
     p0 = p[P_P0]
     ma = 0.0
     mb = 0.0

@@ -8,10 +8,12 @@ a_in, a_out, b_in, b_out.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from pneutune.control.constants import T_REF
 from pneutune.control.contracts.plant import PlantConfig, load_plant
 from pneutune.control.errors import ConfigError
 from pneutune.control.physics.friction import (
@@ -46,7 +48,8 @@ P_GENERAL = 77  # 1.0 when the flows need more than Eq. (7) per valve (lag, line
 P_EXTSTATE = 78  # 1.0 when states beyond the paper's are integrated (heat, LuGre, supply)
 P_STEPK = 79  # the step rule's factor: h * stiffness / M at most this (STEP_STIFFNESS) [-]
 P_RFLAT = 80  # from this |v|/v_s on Eq. (2)'s level is F_C (physics.friction.stribeck_flat_ratio)
-N_PARAMS = 81
+P_KT = 81  # Eq. (7)'s temperature factor sqrt(T_ref / T0) of the chambers' gas [-]
+N_PARAMS = 82
 #: RK4 keeps ``h * stiffness / M`` at most this while sliding (its stability limit on the real
 #: axis is 2.79; at 2 the viscous mode's amplification per step is 0.33, no overshoot).
 #: :func:`pack_plant` copies it into ``P_STEPK``, which the compiled step rule reads, so that
@@ -205,6 +208,7 @@ def pack_plant(cfg: PlantConfig) -> PlantParams:
     r = cfg.rig
     v[P_AA], v[P_AB], v[P_XMIN], v[P_XMAX] = r.A_a, r.A_b, r.x_min, r.x_max
     v[P_V0A], v[P_V0B], v[P_P0], v[P_T0], v[P_N], v[P_R] = r.V0a, r.V0b, r.p0, r.T0, r.n, r.R
+    v[P_KT] = math.sqrt(T_REF / r.T0)  # the same bits as computing it at every flow
     v[P_TS], v[P_TPWM] = r.Ts, 1.0 / r.pwm_hz
     v[P_LATCHED] = 1.0 if r.pwm_update == "latched" else 0.0
     v[P_M] = cfg.total_mass
