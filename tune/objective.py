@@ -35,7 +35,16 @@ Reports to the pruner, two ways (the value of a completed trial is the same eith
 
 * per scenario (``instance_reports=False``; the median pruner): after each scenario the running
   mean is reported (``trial.report(value, step=scenario index)``) and the pruner may stop the
-  trial there;
+  trial there. With the median pruner and the TPE sampler (:func:`pruning_oracle`), a
+  scenario after which the trial may be pruned runs its two corner draws first
+  (:meth:`TuneObjective.bound_draws`, one on each thread); the CVaR over all draws is at least
+  the mean of the largest costs known over the tail count (costs are non-negative), so when
+  that bound already puts the running mean above the pruner's median it is reported and the
+  trial is pruned without the other six draws. The pruner takes the same decision on every
+  trial as with the whole scenario (it reads only complete trials, and prunes more as a value
+  grows); what differs is a pruned trial's last reported value, lower, which TPE reads only
+  while fewer trials have completed than its better group holds. A run that fails among the
+  corners fails the trial at once (its ``failure`` names that run).
 * per instance (``instance_reports=True``; Optuna's ``WilcoxonPruner``): an *instance* is one
   (scenario, draw) run, id ``scenario index * n_draws + draw index``. The instances are run in
   chunks of :data:`INSTANCE_CHUNK` draws of one scenario (a fixed partition of the draws, one
@@ -369,6 +378,43 @@ def estimate_from_best(reported: Sequence[tuple[int, float]], study: optuna.Stud
     return float(np.mean(list(costs.values())))
 
 
+def pruning_oracle(trial: optuna.Trial) -> Callable[[int, float], bool] | None:
+    """``would_prune(step, value)`` for :meth:`TuneObjective.evaluate`: whether the study's
+    pruner would stop ``trial`` if ``value`` were reported at ``step``, asked on a copy of the
+    trial without reporting anything.
+
+    Only where stopping a scenario early on a lower bound changes nothing but a pruned trial's
+    last value: a median or percentile pruner (which reads the complete trials alone, and
+    prunes more as the value grows) and a TPE sampler (which ranks pruned trials by their last
+    value only when fewer trials have completed than its better group holds, which a study
+    with the median pruner's start-up does not reach before a tenth of its trials complete).
+    None otherwise (CMA-ES reads pruned trials' values; other pruners are not monotone).
+
+    Returns
+    -------
+    callable or None
+    """
+    study = trial.study
+    pruner = study.pruner
+    if not isinstance(pruner, optuna.pruners.PercentilePruner) \
+            or not isinstance(study.sampler, optuna.samplers.TPESampler):
+        return None
+    number = trial.number
+
+    def would_prune(step: int, value: float) -> bool:
+        frozen = next(t for t in study.get_trials(deepcopy=False) if t.number == number)
+        probe = optuna.trial.FrozenTrial(
+            number=frozen.number, state=frozen.state, value=None,
+            datetime_start=frozen.datetime_start, datetime_complete=None,
+            params=frozen.params, distributions=frozen.distributions,
+            user_attrs=frozen.user_attrs, system_attrs=frozen.system_attrs,
+            intermediate_values={**frozen.intermediate_values, step: float(value)},
+            trial_id=frozen._trial_id)
+        return bool(pruner.prune(study, probe))
+
+    return would_prune
+
+
 class TuneObjective:
     """The objective for one model, seed and settings (module docstring).
 
@@ -423,6 +469,8 @@ class TuneObjective:
         self.draw_chunks: tuple[tuple[int, ...], ...] = tuple(
             tuple(range(i, len(self.draws), n_chunks)) for i in range(n_chunks))
         self._chunk_batches: dict[tuple[str, int], PreparedBatch] = {}
+        # the parts of a scenario that evaluate() runs apart (bound_draws and the rest)
+        self._draw_batches: dict[tuple[str, tuple[int, ...]], PreparedBatch] = {}
 
     def instance_id(self, scenario: int, draw: int) -> int:
         """The id of run (scenario index, draw index) as reported to the pruner."""
@@ -507,7 +555,8 @@ class TuneObjective:
 
     def evaluate(self, controller: ControllerConfig,
                  report: Callable[[int, float], bool] | None = None,
-                 stop_on_failure: bool = True) -> Evaluation:
+                 stop_on_failure: bool = True,
+                 would_prune: Callable[[int, float], bool] | None = None) -> Evaluation:
         """Score ``controller`` on every scenario and draw.
 
         Parameters
@@ -517,6 +566,16 @@ class TuneObjective:
             ``report(step, running_value) -> stop`` after each scenario but the last.
         stop_on_failure : bool
             Stop at the first failed run (tuning); False runs everything (reports).
+        would_prune : callable, optional
+            ``would_prune(step, value) -> bool``: whether the pruner would stop the trial if
+            ``value`` were reported at ``step``, asked without reporting it, and whose answer
+            cannot turn from yes to no as the value grows (a median or percentile pruner).
+            With it (and ``report``), a scenario the trial may be pruned after is run in two
+            parts, the :meth:`bound_draws` first; when their costs already put the running
+            value above what the pruner stops, that lower bound is reported
+            (:meth:`scenario_bound`) and, if the pruner stops the trial, the other draws are
+            never run. Every decision of the pruner is the one the whole scenario would have
+            given; only a pruned trial's last reported value may be lower.
 
         Returns
         -------
@@ -527,12 +586,41 @@ class TuneObjective:
         vec = pack(controller)
         p0 = controller.rig.p0
         p_max = controller.limits.p_max
+        first = self.bound_draws()
         for step, sc in enumerate(self.scenarios):
-            results = self.run_scenario(controller, sc, vec)
+            last = step == len(self.scenarios) - 1
+            reported = False
+            results: list[ClosedLoopResult | None]
+            if (report is not None and would_prune is not None and not last and first
+                    and would_prune(step, math.inf)):
+                part = dict(zip(first, self.run_draws(controller, sc, first, vec), strict=True))
+                bound = self.scenario_bound(
+                    [run_cost(part[d].metrics, sc, d, p0, p_max, st).cost for d in first])
+                if bound is None:  # a run failed: the trial fails, whatever the others do
+                    results = [part.get(d.index) for d in self.draws]
+                else:
+                    n_done = len(ev.scenario_cvar)
+                    # the running value can only be higher; a hair lower covers rounding
+                    low = (sum(ev.scenario_cvar.values()) + bound) / (n_done + 1) \
+                        * (1.0 - 1.0e-12)
+                    if would_prune(step, low):
+                        ev.running.append(low)
+                        reported = True
+                        if report(step, low):
+                            ev.stopped = True
+                            return ev
+                    rest = tuple(d.index for d in self.draws if d.index not in part)
+                    part.update(zip(rest, self.run_draws(controller, sc, rest, vec),
+                                    strict=True))
+                    results = [part[d.index] for d in self.draws]
+            else:
+                results = list(self.run_scenario(controller, sc, vec))
             costs = []
             for d in self.draws:
-                m = results[d.index].metrics
-                rc = run_cost(m, sc, d.index, p0, p_max, st)
+                res = results[d.index]
+                if res is None:  # not run: a run of the first part failed
+                    continue
+                rc = run_cost(res.metrics, sc, d.index, p0, p_max, st)
                 ev.runs[(sc.name, d.index)] = rc
                 if rc.cost is None:
                     if ev.failure is None:
@@ -545,14 +633,80 @@ class TuneObjective:
                 ev.scenario_cvar[sc.name] = cvar(costs, st.cvar_alpha)
                 ev.scenario_worst[sc.name] = float(max(costs))
             if ev.failure is None:
+                if reported:  # the pruner kept the trial on the bound, already reported
+                    ev.running[-1] = float(np.mean(list(ev.scenario_cvar.values())))
+                    continue
                 ev.running.append(float(np.mean(list(ev.scenario_cvar.values()))))
-                last = step == len(self.scenarios) - 1
                 if report is not None and not last and report(step, ev.running[-1]):
                     ev.stopped = True
                     return ev
         if ev.failure is None:
             ev.value = ev.running[-1]
         return ev
+
+    def bound_draws(self) -> tuple[int, ...]:
+        """The draws a scenario the trial may be pruned after runs first (:meth:`evaluate`):
+        the two corners of the box (draws 1 and 2), whose costs are most often the highest, then
+        the others in order, as many as the CVaR averages and at least as many as there are
+        threads; none with fewer than three draws.
+
+        Returns
+        -------
+        tuple of int
+        """
+        n = len(self.draws)
+        if n < 3:
+            return ()
+        k = max(1, math.ceil(self.settings.cvar_alpha * n - 1e-12))
+        m = min(n - 1, max(k, self._threads()))
+        order = [1, 2, 0, *range(3, n)]
+        return tuple(order[:m])
+
+    def scenario_bound(self, costs: Sequence[float | None]) -> float | None:
+        """A lower bound of a scenario's CVaR over all draws from the costs of some of them:
+        the sum of the largest ``k`` of them (``k = ceil(alpha n)``, fewer if fewer are known)
+        over ``k``; None when a run failed (``None`` cost).
+
+        Costs are non-negative, so the mean of the ``k`` largest of all draws is at least
+        that.
+
+        Returns
+        -------
+        float or None
+        """
+        if any(c is None for c in costs):
+            return None
+        n = len(self.draws)
+        k = max(1, math.ceil(self.settings.cvar_alpha * n - 1e-12))
+        top = sorted((float(c) for c in costs if c is not None), reverse=True)[:k]
+        return sum(top) / k
+
+    def run_draws(self, controller: ControllerConfig, scenario: Scenario,
+                  draws: Sequence[int], cfg_vec: np.ndarray | None = None
+                  ) -> list[ClosedLoopResult]:
+        """The draws ``draws`` of ``scenario`` in one compiled call on :attr:`jobs` threads,
+        each run bit-identical to :meth:`run_scenario`'s.
+
+        Returns
+        -------
+        list of ClosedLoopResult
+            In the order of ``draws``.
+        """
+        key = (scenario.name, tuple(draws))
+        batch = self._draw_batches.get(key)
+        if batch is None:
+            runs = self._runs[scenario.name]
+            batch = prepare_batch([runs[d] for d in draws])
+            self._draw_batches[key] = batch
+        threads = max(1, min(self.jobs, len(batch.runs), numba.config.NUMBA_NUM_THREADS))
+        previous = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            with numba.parallel_chunksize(1):
+                return run_batch(batch, controller, abort_error=self.settings.abort_error,
+                                 cfg_vec=cfg_vec)
+        finally:
+            numba.set_num_threads(previous)
 
     def evaluate_instances(self, controller: ControllerConfig,
                            order: Sequence[tuple[int, int]],
@@ -633,7 +787,7 @@ class TuneObjective:
             ev = self.evaluate_instances(controller, self.instance_order(trial.number),
                                          report=report_instances)
         else:
-            ev = self.evaluate(controller, report=report)
+            ev = self.evaluate(controller, report=report, would_prune=pruning_oracle(trial))
         n_runs = len(self.scenarios) * len(self.draws)  # also the summary step
         if ev.failure is not None:
             trial.set_user_attr("failure", ev.failure)
@@ -664,4 +818,4 @@ class TuneObjective:
 
 __all__ = ["DEFAULT_SCENARIOS", "FAIL_VALUE", "INSTANCE_CHUNK", "Evaluation",
            "ObjectiveSettings", "RunCost", "TuneError", "TuneObjective", "cvar",
-           "estimate_from_best", "reference_figures", "run_cost"]
+           "estimate_from_best", "pruning_oracle", "reference_figures", "run_cost"]

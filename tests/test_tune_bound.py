@@ -1,0 +1,106 @@
+"""A scenario the trial may be pruned after: its corner draws first, and a lower bound that
+stops the trial without the other draws when the pruner would stop it anyway
+(``TuneObjective.evaluate`` with ``would_prune``).
+
+Expected values come from the definitions in ``tune/objective.py`` (the CVaR at level 0.25 over
+eight draws is the mean of the two largest costs; costs are non-negative) and from running the
+same study with and without the bound: the pruner must take the same decision on every trial.
+"""
+
+from __future__ import annotations
+
+import numba
+import optuna
+import pytest
+
+from pneutune.control.contracts.plant import PlantConfig
+from pneutune.control.sim.truth import model_from_plant
+from pneutune.tune import objective as objective_module
+from pneutune.tune.objective import ObjectiveSettings, TuneObjective, pruning_oracle
+from pneutune.tune.samplers import tpe
+
+MODEL = model_from_plant(PlantConfig())
+#: Three short scenarios on eight plants (the CVaR averages the two worst).
+SETTINGS = ObjectiveSettings(scenarios=("sine-0.5hz", "square-0.5hz", "sine-0.75hz"),
+                             n_draws=8, duration=3.0)
+
+
+def test_the_bound_is_the_mean_of_the_largest_known_costs() -> None:
+    """k = ceil(0.25 * 8) = 2: of costs 5, 4, 1 the bound is (5 + 4) / 2; of one cost 3 it is
+    3 / 2 (the other of the two largest is at least 0); a failed run gives no bound."""
+    obj = TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=1)
+    assert obj.scenario_bound([5.0, 1.0, 4.0]) == pytest.approx(4.5, rel=1e-15)
+    assert obj.scenario_bound([3.0]) == pytest.approx(1.5, rel=1e-15)
+    assert obj.scenario_bound([3.0, None]) is None
+    assert obj.bound_draws() == (1, 2)  # the two corners of the box
+    # with more threads, as many draws as threads (numba's thread count caps them)
+    threads = min(4, numba.config.NUMBA_NUM_THREADS)
+    assert TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=4).bound_draws() \
+        == (1, 2, 0, 3)[:max(2, threads)]
+    two = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=3.0)
+    assert TuneObjective(MODEL, seed=1, settings=two, jobs=1).bound_draws() == ()
+
+
+def test_the_bound_is_below_the_scenarios_cvar() -> None:
+    """On the paper's gains and on three random gain sets, the bound from the corners is at
+    most the scenario's CVaR over all eight draws (the costs from a full evaluation)."""
+    obj = TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=1)
+    random = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=5))
+    for p in (obj.space.paper_params(), *(obj.space.suggest(random.ask()) for _ in range(3))):
+        ev = obj.evaluate(obj.controller(p), stop_on_failure=False)
+        for sc in obj.scenarios:
+            costs = [ev.runs[(sc.name, d)].cost for d in obj.bound_draws()]
+            if None in costs or sc.name not in ev.scenario_cvar:
+                continue  # a failed run: no bound, nothing to compare
+            bound = obj.scenario_bound(costs)
+            assert bound is not None and bound <= ev.scenario_cvar[sc.name]
+
+
+def _study(monkeypatch: pytest.MonkeyPatch, bound: bool) -> optuna.Study:
+    if not bound:
+        monkeypatch.setattr(objective_module, "pruning_oracle", lambda trial: None)
+    obj = TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=1)
+    study = optuna.create_study(sampler=tpe(3), pruner=optuna.pruners.MedianPruner(
+        n_startup_trials=3, n_warmup_steps=0, interval_steps=1))
+    study.enqueue_trial(obj.space.paper_params())
+    study.optimize(obj, n_trials=30)
+    monkeypatch.undo()
+    return study
+
+
+def test_the_bound_changes_no_decision_of_the_pruner(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same seeded study with and without the bound: the same parameters and states on
+    every trial, the same value of every complete trial (bit for bit: the same runs), the same
+    values reported before a pruned trial's last step, and at that step a value no higher; at
+    least one trial stopped on the bound (a lower value there)."""
+    with_bound = _study(monkeypatch, bound=True)
+    without = _study(monkeypatch, bound=False)
+    lowered = 0
+    for a, b in zip(with_bound.trials, without.trials, strict=True):
+        assert a.params == b.params
+        assert a.state == b.state
+        assert sorted(a.intermediate_values) == sorted(b.intermediate_values)
+        if a.state == optuna.trial.TrialState.COMPLETE:
+            assert a.value == b.value
+            assert a.intermediate_values == b.intermediate_values
+            continue
+        last = max(a.intermediate_values)
+        for step, value in a.intermediate_values.items():
+            if step == last:
+                assert value <= b.intermediate_values[step]
+                lowered += value < b.intermediate_values[step]
+            else:
+                assert value == b.intermediate_values[step]
+    assert lowered > 0, "expected a trial stopped on the bound"
+    assert with_bound.best_trial.number == without.best_trial.number
+
+
+def test_no_oracle_where_a_pruned_value_could_steer_the_sampler() -> None:
+    """CMA-ES reads pruned trials' values and the Wilcoxon pruner is no percentile: no bound."""
+    for sampler, pruner in ((optuna.samplers.RandomSampler(seed=0),
+                             optuna.pruners.MedianPruner()),
+                            (tpe(0), optuna.pruners.NopPruner())):
+        study = optuna.create_study(sampler=sampler, pruner=pruner)
+        assert pruning_oracle(study.ask()) is None
+    study = optuna.create_study(sampler=tpe(0), pruner=optuna.pruners.MedianPruner())
+    assert pruning_oracle(study.ask()) is not None
