@@ -468,8 +468,8 @@ class TuneObjective:
         n_chunks = math.ceil(len(self.draws) / INSTANCE_CHUNK)
         self.draw_chunks: tuple[tuple[int, ...], ...] = tuple(
             tuple(range(i, len(self.draws), n_chunks)) for i in range(n_chunks))
-        self._chunk_batches: dict[tuple[str, int], PreparedBatch] = {}
-        # the parts of a scenario that evaluate() runs apart (bound_draws and the rest)
+        # the parts of a scenario run apart (the chunks; bound_draws and the rest), stacked on
+        # first use
         self._draw_batches: dict[tuple[str, tuple[int, ...]], PreparedBatch] = {}
 
     def instance_id(self, scenario: int, draw: int) -> int:
@@ -499,22 +499,8 @@ class TuneObjective:
         list of ClosedLoopResult
             In the order of ``draw_chunks[chunk]``.
         """
-        sc = self.scenarios[scenario]
-        key = (sc.name, chunk)
-        batch = self._chunk_batches.get(key)
-        if batch is None:
-            runs = self._runs[sc.name]
-            batch = prepare_batch([runs[d] for d in self.draw_chunks[chunk]])
-            self._chunk_batches[key] = batch
-        threads = max(1, min(self.jobs, len(batch.runs), numba.config.NUMBA_NUM_THREADS))
-        previous = numba.get_num_threads()
-        numba.set_num_threads(threads)
-        try:
-            with numba.parallel_chunksize(1):
-                return run_batch(batch, controller, abort_error=self.settings.abort_error,
-                                 cfg_vec=cfg_vec)
-        finally:
-            numba.set_num_threads(previous)
+        return self.run_draws(controller, self.scenarios[scenario], self.draw_chunks[chunk],
+                              cfg_vec)
 
     def _threads(self) -> int:
         """Threads to run a scenario's draws on."""
