@@ -104,3 +104,14 @@ def test_no_oracle_where_a_pruned_value_could_steer_the_sampler() -> None:
         assert pruning_oracle(study.ask()) is None
     study = optuna.create_study(sampler=tpe(0), pruner=optuna.pruners.MedianPruner())
     assert pruning_oracle(study.ask()) is not None
+    assert pruning_oracle(optuna.trial.FixedTrial({})) is None  # no study behind it
+
+
+def test_a_fixed_trial_is_scored_as_before() -> None:
+    """Optuna's FixedTrial (an objective's debugging aid): the paper's gains score the value of
+    a full evaluation, bit for bit (the same runs)."""
+    obj = TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=1)
+    params = obj.space.paper_params()
+    value = obj(optuna.trial.FixedTrial(params))
+    full = obj.evaluate(obj.controller(params))
+    assert full.value is not None and value == full.value

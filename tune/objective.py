@@ -394,7 +394,9 @@ def pruning_oracle(trial: optuna.Trial) -> Callable[[int, float], bool] | None:
     -------
     callable or None
     """
-    study = trial.study
+    study = getattr(trial, "study", None)  # an optuna.trial.FixedTrial has none
+    if study is None:
+        return None
     pruner = study.pruner
     if not isinstance(pruner, optuna.pruners.PercentilePruner) \
             or not isinstance(study.sampler, optuna.samplers.TPESampler):
