@@ -1,5 +1,5 @@
-"""A scenario the trial may be pruned after: its corner draws first, and a lower bound that
-stops the trial without the other draws when the pruner would stop it anyway
+"""A scenario the trial may be pruned after: its corner draws first, then two more, and a lower
+bound that stops the trial without the other draws when the pruner would stop it anyway
 (``TuneObjective.evaluate`` with ``would_prune``).
 
 Expected values come from the definitions in ``tune/objective.py`` (the CVaR at level 0.25 over
@@ -32,13 +32,17 @@ def test_the_bound_is_the_mean_of_the_largest_known_costs() -> None:
     assert obj.scenario_bound([5.0, 1.0, 4.0]) == pytest.approx(4.5, rel=1e-15)
     assert obj.scenario_bound([3.0]) == pytest.approx(1.5, rel=1e-15)
     assert obj.scenario_bound([3.0, None]) is None
-    assert obj.bound_draws() == (1, 2)  # the two corners of the box
-    # with more threads, as many draws as threads (numba's thread count caps them)
+    # the two corners of the box, then two Latin-hypercube draws; the nominal plant runs last
+    assert obj.bound_stages() == ((1, 2), (3, 4))
+    # with more threads, as many draws a stage as threads (numba's thread count caps them)
     threads = min(4, numba.config.NUMBA_NUM_THREADS)
-    assert TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=4).bound_draws() \
-        == (1, 2, 0, 3)[:max(2, threads)]
+    wide = TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=4).bound_stages()
+    assert wide == (((1, 2), (3, 4)) if threads <= 2 else ((1, 2, 3, 4), (5, 6, 7)))
+    three = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=3, duration=3.0)
+    # three draws: the CVaR is the worst one (ceil(0.25 * 3) = 1), a draw a stage on one thread
+    assert TuneObjective(MODEL, seed=1, settings=three, jobs=1).bound_stages() == ((1,), (2,))
     two = ObjectiveSettings(scenarios=("sine-0.5hz",), n_draws=2, duration=3.0)
-    assert TuneObjective(MODEL, seed=1, settings=two, jobs=1).bound_draws() == ()
+    assert TuneObjective(MODEL, seed=1, settings=two, jobs=1).bound_stages() == ()
 
 
 def test_the_bound_is_below_the_scenarios_cvar() -> None:
@@ -48,12 +52,13 @@ def test_the_bound_is_below_the_scenarios_cvar() -> None:
     random = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=5))
     for p in (obj.space.paper_params(), *(obj.space.suggest(random.ask()) for _ in range(3))):
         ev = obj.evaluate(obj.controller(p), stop_on_failure=False)
+        first, second = obj.bound_stages()
         for sc in obj.scenarios:
-            costs = [ev.runs[(sc.name, d)].cost for d in obj.bound_draws()]
-            if None in costs or sc.name not in ev.scenario_cvar:
+            if sc.name not in ev.scenario_cvar:
                 continue  # a failed run: no bound, nothing to compare
-            bound = obj.scenario_bound(costs)
-            assert bound is not None and bound <= ev.scenario_cvar[sc.name]
+            for known in (first, first + second):
+                bound = obj.scenario_bound([ev.runs[(sc.name, d)].cost for d in known])
+                assert bound is not None and bound <= ev.scenario_cvar[sc.name]
 
 
 def _study(monkeypatch: pytest.MonkeyPatch, bound: bool) -> optuna.Study:

@@ -36,11 +36,11 @@ Reports to the pruner, two ways (the value of a completed trial is the same eith
 * per scenario (``instance_reports=False``; the median pruner): after each scenario the running
   mean is reported (``trial.report(value, step=scenario index)``) and the pruner may stop the
   trial there. With the median pruner and the TPE sampler (:func:`pruning_oracle`), a
-  scenario after which the trial may be pruned runs its two corner draws first
-  (:meth:`TuneObjective.bound_draws`, one on each thread); the CVaR over all draws is at least
-  the mean of the largest costs known over the tail count (costs are non-negative), so when
-  that bound already puts the running mean above the pruner's median it is reported and the
-  trial is pruned without the other six draws. The pruner takes the same decision on every
+  scenario after which the trial may be pruned runs its two corner draws first, then two more
+  (:meth:`TuneObjective.bound_stages`, one draw on each thread); the CVaR over all draws is at
+  least the mean of the largest costs known over the tail count (costs are non-negative), so
+  when that bound already puts the running mean above the pruner's median it is reported and
+  the trial is pruned without the other draws. The pruner takes the same decision on every
   trial as with the whole scenario (it reads only complete trials, and prunes more as a value
   grows); what differs is a pruned trial's last reported value, lower, which TPE reads only
   while fewer trials have completed than its better group holds. A run that fails among the
@@ -470,7 +470,7 @@ class TuneObjective:
         n_chunks = math.ceil(len(self.draws) / INSTANCE_CHUNK)
         self.draw_chunks: tuple[tuple[int, ...], ...] = tuple(
             tuple(range(i, len(self.draws), n_chunks)) for i in range(n_chunks))
-        # the parts of a scenario run apart (the chunks; bound_draws and the rest), stacked on
+        # the parts of a scenario run apart (the chunks; bound_stages and the rest), stacked on
         # first use
         self._draw_batches: dict[tuple[str, tuple[int, ...]], PreparedBatch] = {}
 
@@ -558,8 +558,8 @@ class TuneObjective:
             ``would_prune(step, value) -> bool``: whether the pruner would stop the trial if
             ``value`` were reported at ``step``, asked without reporting it, and whose answer
             cannot turn from yes to no as the value grows (a median or percentile pruner).
-            With it (and ``report``), a scenario the trial may be pruned after is run in two
-            parts, the :meth:`bound_draws` first; when their costs already put the running
+            With it (and ``report``), a scenario the trial may be pruned after is run in parts,
+            the :meth:`bound_stages` first; when their costs already put the running
             value above what the pruner stops, that lower bound is reported
             (:meth:`scenario_bound`) and, if the pruner stops the trial, the other draws are
             never run. Every decision of the pruner is the one the whole scenario would have
@@ -574,19 +574,23 @@ class TuneObjective:
         vec = pack(controller)
         p0 = controller.rig.p0
         p_max = controller.limits.p_max
-        first = self.bound_draws()
+        stages = self.bound_stages()
         for step, sc in enumerate(self.scenarios):
             last = step == len(self.scenarios) - 1
             reported = False
             results: list[ClosedLoopResult | None]
-            if (report is not None and would_prune is not None and not last and first
+            if (report is not None and would_prune is not None and not last and stages
                     and would_prune(step, math.inf)):
-                part = dict(zip(first, self.run_draws(controller, sc, first, vec), strict=True))
-                bound = self.scenario_bound(
-                    [run_cost(part[d].metrics, sc, d, p0, p_max, st).cost for d in first])
-                if bound is None:  # a run failed: the trial fails, whatever the others do
-                    results = [part.get(d.index) for d in self.draws]
-                else:
+                part: dict[int, ClosedLoopResult] = {}
+                failed = False
+                for stage in stages:
+                    part.update(zip(stage, self.run_draws(controller, sc, stage, vec),
+                                    strict=True))
+                    bound = self.scenario_bound([run_cost(r.metrics, sc, d, p0, p_max, st).cost
+                                                 for d, r in part.items()])
+                    if bound is None:  # a run failed: the trial fails, whatever the others do
+                        failed = True
+                        break
                     n_done = len(ev.scenario_cvar)
                     # the running value can only be higher; a hair lower covers rounding
                     low = (sum(ev.scenario_cvar.values()) + bound) / (n_done + 1) \
@@ -597,10 +601,12 @@ class TuneObjective:
                         if report(step, low):
                             ev.stopped = True
                             return ev
+                        break  # kept after all (another worker's trial completed meanwhile)
+                if not failed:
                     rest = tuple(d.index for d in self.draws if d.index not in part)
                     part.update(zip(rest, self.run_draws(controller, sc, rest, vec),
                                     strict=True))
-                    results = [part[d.index] for d in self.draws]
+                results = [part.get(d.index) for d in self.draws]
             else:
                 results = list(self.run_scenario(controller, sc, vec))
             costs = []
@@ -632,23 +638,30 @@ class TuneObjective:
             ev.value = ev.running[-1]
         return ev
 
-    def bound_draws(self) -> tuple[int, ...]:
-        """The draws a scenario the trial may be pruned after runs first (:meth:`evaluate`):
-        the two corners of the box (draws 1 and 2), whose costs are most often the highest, then
-        the others in order, as many as the CVaR averages and at least as many as there are
-        threads; none with fewer than three draws.
+    def bound_stages(self) -> tuple[tuple[int, ...], ...]:
+        """The draws a scenario the trial may be pruned after runs first, in stages, each
+        followed by a check of the bound (:meth:`evaluate`): the two corners of the box (draws 1
+        and 2), whose costs are most often among the highest, then the next two draws of the
+        Latin hypercube; each stage as many draws as the CVaR averages and at least as many as
+        there are threads, and at least one draw left for the rest (the nominal plant, draw 0,
+        runs last). None with fewer than three draws.
 
         Returns
         -------
-        tuple of int
+        tuple of tuple of int
         """
         n = len(self.draws)
         if n < 3:
             return ()
         k = max(1, math.ceil(self.settings.cvar_alpha * n - 1e-12))
-        m = min(n - 1, max(k, self._threads()))
-        order = [1, 2, 0, *range(3, n)]
-        return tuple(order[:m])
+        m = max(k, self._threads())
+        order = [*range(1, n), 0]
+        stages = []
+        for start in (0, m):
+            stage = tuple(order[start:min(start + m, n - 1)])
+            if stage:
+                stages.append(stage)
+        return tuple(stages)
 
     def scenario_bound(self, costs: Sequence[float | None]) -> float | None:
         """A lower bound of a scenario's CVaR over all draws from the costs of some of them:
