@@ -225,8 +225,13 @@ def cvar(values: Sequence[float], alpha: float) -> float:
     float
     """
     v = np.sort(np.asarray(values, dtype=float))[::-1]
-    k = max(1, math.ceil(alpha * v.size - 1e-12))
-    return float(np.mean(v[:k]))
+    return float(np.mean(v[:_tail(v.size, alpha)]))
+
+
+def _tail(n: int, alpha: float) -> int:
+    """How many of ``n`` costs the CVaR at level ``alpha`` averages: ``ceil(alpha n)``, at
+    least one."""
+    return max(1, math.ceil(alpha * n - 1e-12))
 
 
 def reference_figures(scenario: Scenario) -> tuple[float, float]:
@@ -463,16 +468,16 @@ class TuneObjective:
         # initial state) is prepared once; every trial runs on the same prepared runs.
         self._runs: dict[str, tuple[PreparedRun, ...]] = {
             s.name: tuple(prepare_run(s, d.plant) for d in self.draws) for s in self.scenarios}
-        self._batches: dict[str, PreparedBatch] = {
-            name: prepare_batch(runs) for name, runs in self._runs.items()}
         # per-instance evaluation: the draws in fixed chunks (draws i, i + k, i + 2k, ...),
         # their batches stacked on first use
         n_chunks = math.ceil(len(self.draws) / INSTANCE_CHUNK)
         self.draw_chunks: tuple[tuple[int, ...], ...] = tuple(
             tuple(range(i, len(self.draws), n_chunks)) for i in range(n_chunks))
-        # the parts of a scenario run apart (the chunks; bound_stages and the rest), stacked on
-        # first use
-        self._draw_batches: dict[tuple[str, tuple[int, ...]], PreparedBatch] = {}
+        # batches of a scenario's draws by (scenario, draws): every draw (prepared now), and the
+        # parts run apart (the chunks; bound_stages and the rest), stacked on first use
+        every = tuple(range(len(self.draws)))
+        self._draw_batches: dict[tuple[str, tuple[int, ...]], PreparedBatch] = {
+            (name, every): prepare_batch(runs) for name, runs in self._runs.items()}
 
     def instance_id(self, scenario: int, draw: int) -> int:
         """The id of run (scenario index, draw index) as reported to the pruner."""
@@ -518,15 +523,7 @@ class TuneObjective:
         list of ClosedLoopResult
             In draw order.
         """
-        abort_error = self.settings.abort_error if abort else np.inf
-        previous = numba.get_num_threads()
-        numba.set_num_threads(self._threads())
-        try:
-            with numba.parallel_chunksize(1):  # hand the runs out one at a time
-                return run_batch(self._batches[scenario.name], controller,
-                                 abort_error=abort_error, cfg_vec=cfg_vec)
-        finally:
-            numba.set_num_threads(previous)
+        return self.run_draws(controller, scenario, range(len(self.draws)), cfg_vec, abort)
 
     def simulate(self, controller: ControllerConfig, scenario: Scenario, draw: PlantDraw,
                  cfg_vec: np.ndarray | None = None, abort: bool = True) -> ClosedLoopResult:
@@ -638,6 +635,11 @@ class TuneObjective:
             ev.value = ev.running[-1]
         return ev
 
+    def tail_count(self) -> int:
+        """How many of the draws' costs the CVaR averages: ``ceil(alpha n)``, at least one
+        (:func:`cvar`)."""
+        return _tail(len(self.draws), self.settings.cvar_alpha)
+
     def bound_stages(self) -> tuple[tuple[int, ...], ...]:
         """The draws a scenario the trial may be pruned after runs first, in stages, each
         followed by a check of the bound (:meth:`evaluate`): the two corners of the box (draws 1
@@ -653,8 +655,7 @@ class TuneObjective:
         n = len(self.draws)
         if n < 3:
             return ()
-        k = max(1, math.ceil(self.settings.cvar_alpha * n - 1e-12))
-        m = max(k, self._threads())
+        m = max(self.tail_count(), self._threads())
         order = [*range(1, n), 0]
         stages = []
         for start in (0, m):
@@ -677,16 +678,15 @@ class TuneObjective:
         """
         if any(c is None for c in costs):
             return None
-        n = len(self.draws)
-        k = max(1, math.ceil(self.settings.cvar_alpha * n - 1e-12))
+        k = self.tail_count()
         top = sorted((float(c) for c in costs if c is not None), reverse=True)[:k]
         return sum(top) / k
 
     def run_draws(self, controller: ControllerConfig, scenario: Scenario,
-                  draws: Sequence[int], cfg_vec: np.ndarray | None = None
-                  ) -> list[ClosedLoopResult]:
-        """The draws ``draws`` of ``scenario`` in one compiled call on :attr:`jobs` threads,
-        each run bit-identical to :meth:`run_scenario`'s.
+                  draws: Sequence[int], cfg_vec: np.ndarray | None = None,
+                  abort: bool = True) -> list[ClosedLoopResult]:
+        """The draws ``draws`` of ``scenario`` in one compiled call on up to :attr:`jobs`
+        threads; each run is computed as if alone, so the same whatever the draws beside it.
 
         Returns
         -------
@@ -697,14 +697,15 @@ class TuneObjective:
         batch = self._draw_batches.get(key)
         if batch is None:
             runs = self._runs[scenario.name]
-            batch = prepare_batch([runs[d] for d in draws])
+            batch = prepare_batch([runs[d] for d in key[1]])
             self._draw_batches[key] = batch
         threads = max(1, min(self.jobs, len(batch.runs), numba.config.NUMBA_NUM_THREADS))
         previous = numba.get_num_threads()
         numba.set_num_threads(threads)
         try:
-            with numba.parallel_chunksize(1):
-                return run_batch(batch, controller, abort_error=self.settings.abort_error,
+            with numba.parallel_chunksize(1):  # hand the runs out one at a time
+                return run_batch(batch, controller,
+                                 abort_error=self.settings.abort_error if abort else np.inf,
                                  cfg_vec=cfg_vec)
         finally:
             numba.set_num_threads(previous)
