@@ -9,6 +9,8 @@ same study with and without the bound: the pruner must take the same decision on
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numba
 import optuna
 import pytest
@@ -16,6 +18,7 @@ import pytest
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune import objective as objective_module
+from pneutune.tune import report as report_module
 from pneutune.tune.objective import ObjectiveSettings, TuneObjective, pruning_oracle
 from pneutune.tune.samplers import tpe
 
@@ -73,11 +76,14 @@ def _study(monkeypatch: pytest.MonkeyPatch, bound: bool) -> optuna.Study:
     return study
 
 
-def test_the_bound_changes_no_decision_of_the_pruner(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_bound_changes_no_decision_of_the_pruner(monkeypatch: pytest.MonkeyPatch,
+                                                    tmp_path: Path) -> None:
     """The same seeded study with and without the bound: the same parameters and states on
     every trial, the same value of every complete trial (bit for bit: the same runs), the same
     values reported before a pruned trial's last step, and at that step a value no higher; at
-    least one trial stopped on the bound (a lower value there)."""
+    least one trial stopped on the bound (a lower value there). A trial stopped on the bound, and
+    only such a trial, says so in ``user_attrs["pruned_on_bound"]``, with fewer draws run than
+    the scenario has: history.png draws its value as a lower bound."""
     with_bound = _study(monkeypatch, bound=True)
     without = _study(monkeypatch, bound=False)
     lowered = 0
@@ -94,10 +100,22 @@ def test_the_bound_changes_no_decision_of_the_pruner(monkeypatch: pytest.MonkeyP
             if step == last:
                 assert value <= b.intermediate_values[step]
                 lowered += value < b.intermediate_values[step]
+                on_bound = a.user_attrs.get("pruned_on_bound")
+                # the bound is reported a hair low (1e-12), so it is below the CVaR
+                assert (on_bound is not None) == (value < b.intermediate_values[step])
+                assert "pruned_on_bound" not in b.user_attrs
+                if on_bound is not None:
+                    assert 2 <= on_bound["draws_run"] < SETTINGS.n_draws
+                    assert on_bound["scenario"] == SETTINGS.scenarios[last]
             else:
                 assert value == b.intermediate_values[step]
     assert lowered > 0, "expected a trial stopped on the bound"
     assert with_bound.best_trial.number == without.best_trial.number
+    saved = []
+    monkeypatch.setattr(report_module, "save_figure", lambda fig, path: saved.append(fig))
+    report_module.plot_history(with_bound, tmp_path / "history.png")
+    labels = saved[0].axes[0].get_legend_handles_labels()[1]
+    assert "pruned on a lower bound (value at least)" in labels
 
 
 def test_no_oracle_where_a_pruned_value_could_steer_the_sampler() -> None:

@@ -324,6 +324,10 @@ class Evaluation:
         cost) pairs in the order they were run.
     failed_instance : int or None
         Per-instance evaluation: the instance id of the failed run.
+    bound_draws : int or None
+        Stopped on a lower bound (:meth:`TuneObjective.evaluate` with ``would_prune``): how
+        many of the last scenario's draws had run; the last value in ``running`` is then that
+        bound, not the scenario's CVaR.
     """
 
     value: float | None = None
@@ -335,6 +339,7 @@ class Evaluation:
     stopped: bool = False
     reported: list[tuple[int, float]] = field(default_factory=list)
     failed_instance: int | None = None
+    bound_draws: int | None = None
 
     def draw_totals(self) -> dict[int, float]:
         """Per draw, the mean cost over the scenarios evaluated (None-cost runs excluded)."""
@@ -597,6 +602,7 @@ class TuneObjective:
                         reported = True
                         if report(step, low):
                             ev.stopped = True
+                            ev.bound_draws = len(part)
                             return ev
                         break  # kept after all (another worker's trial completed meanwhile)
                 if not failed:
@@ -804,6 +810,13 @@ class TuneObjective:
             if self.instance_reports:  # the summary step (module docstring)
                 trial.report(estimate_from_best(ev.reported, trial.study), n_runs)
                 raise optuna.TrialPruned(f"pruned after {len(ev.reported)} of {n_runs} runs")
+            if ev.bound_draws is not None:  # history.png marks its value as a lower bound
+                trial.set_user_attr("pruned_on_bound", {
+                    "scenario": self.scenarios[len(ev.running) - 1].name,
+                    "draws_run": ev.bound_draws})
+                raise optuna.TrialPruned(
+                    f"pruned on a lower bound after {ev.bound_draws} of {len(self.draws)} "
+                    f"draws of scenario {len(ev.running)}")
             raise optuna.TrialPruned(f"pruned after {len(ev.running)} scenario(s)")
         trial.set_user_attr("scenarios", {
             s: {"cvar": ev.scenario_cvar[s], "worst": ev.scenario_worst[s],

@@ -182,17 +182,24 @@ def _heldout(comp: Comparison) -> list[str]:
 
 
 def plot_history(study: optuna.Study, path: Path) -> Path:
-    """Objective of each trial and the best so far (PNG)."""
+    """Objective of each trial and the best so far (PNG).
+
+    A pruned trial is drawn at its last reported value; one the pruner stopped on a lower bound
+    of a scenario (``user_attrs["pruned_on_bound"]``) with its own marker, since its objective
+    would have been at least that value.
+    """
     trials = study.get_trials(deepcopy=False)
     fig = Figure(figsize=(8, 4))
     ax = fig.subplots()
     done = [t for t in trials if t.state == TrialState.COMPLETE]
-    pruned = [(t.number, t.intermediate_values[max(t.intermediate_values)])
+    pruned = [(t.number, t.intermediate_values[max(t.intermediate_values)],
+               "pruned_on_bound" in t.user_attrs)
               for t in trials if t.state == TrialState.PRUNED and t.intermediate_values]
-    pr_ok = [(n, v) for n, v in pruned if v < FAIL_VALUE]
-    if pr_ok:
-        ax.scatter(*zip(*pr_ok, strict=True), s=10, marker="x", color="0.6",
-                   label="pruned (last reported value)")
+    for on_bound, marker, label in ((False, "x", "pruned (last reported value)"),
+                                    (True, "^", "pruned on a lower bound (value at least)")):
+        pts = [(n, v) for n, v, b in pruned if v < FAIL_VALUE and b == on_bound]
+        if pts:
+            ax.scatter(*zip(*pts, strict=True), s=10, marker=marker, color="0.6", label=label)
     if done:
         x = [t.number for t in done]
         y = [t.value for t in done]
@@ -200,7 +207,7 @@ def plot_history(study: optuna.Study, path: Path) -> Path:
         order = np.argsort(x)
         best = np.minimum.accumulate(np.asarray(y)[order])
         ax.step(np.asarray(x)[order], best, where="post", color="C3", label="best so far")
-    n_fail = sum(1 for _, v in pruned if v >= FAIL_VALUE)
+    n_fail = sum(1 for _, v, _ in pruned if v >= FAIL_VALUE)
     ax.set_xlabel("trial")
     ax.set_ylabel("objective (1 = the paper's Table 1)")
     ax.set_yscale("log")
