@@ -36,6 +36,7 @@ import argparse
 import json
 import shlex
 import sys
+import textwrap
 import time
 import warnings
 from collections.abc import Mapping
@@ -165,7 +166,8 @@ def plant_updates(m: Mapping[str, float]) -> dict[str, Any]:
     return _round_tree(upd, DERIVED_SIGNIFICANT)
 
 
-def build_plant(m: Mapping[str, float], pwm_update: str = "immediate") -> PlantConfig:
+def build_plant(m: Mapping[str, float], pwm_update: str = "immediate",
+                p_at: str = "chamber") -> PlantConfig:
     """The paper's plant (the default :class:`PlantConfig`) with the magnitudes ``m``.
 
     ``pwm_update`` is the plant's ``rig.pwm_update``: how the PWM board takes a new duty (the
@@ -174,6 +176,8 @@ def build_plant(m: Mapping[str, float], pwm_update: str = "immediate") -> PlantC
     upd = plant_updates(m)
     if pwm_update != "immediate":
         upd["rig"] = {"pwm_update": pwm_update}
+    if p_at != "chamber":
+        upd["sensors"]["p_at"] = p_at
     return PlantConfig().with_updates(upd)
 
 
@@ -264,7 +268,8 @@ def report(res: Mapping[str, np.ndarray], tolerance: float) -> bool:
 
 def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] | None = None,
            timeout: float | None = None, log: Path | None = None,
-           pwm_update: str = "immediate") -> tuple[list[tuple[dict[str, float], float]], int]:
+           pwm_update: str = "immediate", p_at: str = "chamber",
+           ) -> tuple[list[tuple[dict[str, float], float]], int]:
     """Seeded TPE search of the magnitudes, each rounded before its plant is built.
 
     Parameters
@@ -283,6 +288,8 @@ def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] 
         Append each trial's magnitudes and worst difference to this file, a JSON line each.
     pwm_update : str
         The plants' ``rig.pwm_update``.
+    p_at : str
+        The plants' ``sensors.p_at``: where the chamber pressure transmitters sit.
 
     Returns
     -------
@@ -306,7 +313,7 @@ def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] 
         # rounding may step just outside a range: back to its bound
         m = {k: min(max(v, space[k][0]), space[k][1]) for k, v in m.items()}
         trial.set_user_attr("m", m)
-        worst = worst_difference(table1(build_plant(m, pwm_update), seeds))
+        worst = worst_difference(table1(build_plant(m, pwm_update, p_at), seeds))
         if worst < best[0]:
             best[:] = [worst, trial.number]
         if log is not None:
@@ -333,7 +340,8 @@ def search(trials: int, seeds: list[int], seed: int, start: Mapping[str, float] 
     return out, len(study.trials)
 
 
-def header_text(m: Mapping[str, float], command: str, tables: Mapping[str, list[str]]) -> str:
+def header_text(m: Mapping[str, float], command: str, tables: Mapping[str, list[str]],
+                effects: tuple[str, ...] = tuple(rig_effects.EFFECTS)) -> str:
     """The plant file's comment header.
 
     Parameters
@@ -344,6 +352,8 @@ def header_text(m: Mapping[str, float], command: str, tables: Mapping[str, list[
         The command line that made the file.
     tables : mapping
         Seed-set label -> :func:`table_lines` of the plant.
+    effects : tuple of str
+        The plant's real-rig effects (``PlantConfig.effects``).
 
     Returns
     -------
@@ -353,11 +363,11 @@ def header_text(m: Mapping[str, float], command: str, tables: Mapping[str, list[
     rng = ranges()
     lines = [
         "The paper's rig (Qian et al. 2014, Sec. 5.1: geometry, valves, the default plant) with",
-        "real-rig effects: valve armature lag, lines, wall heat transfer, LuGre pre-sliding,",
-        "sensor lags, IO delay and supply droop, at magnitudes inside the published ranges of",
-        "control/sim/rig_effects.py (MAGNITUDES) and benchmarks/paper_rig.py (FRICTION);",
-        "docs/real-rig.md gives the sources. With the paper's gains (data/controller-paper.yaml)",
-        "it reproduces Table 1 (below).",
+        *textwrap.wrap("real-rig effects: " + ", ".join(effects) + ", at magnitudes inside the "
+                       "published ranges of control/sim/rig_effects.py (MAGNITUDES) and "
+                       "benchmarks/paper_rig.py (FRICTION); docs/real-rig.md gives the sources. "
+                       "With the paper's gains (data/controller-paper.yaml) it reproduces "
+                       "Table 1 (below).", 92),
         "",
         f"Made {time.strftime('%Y-%m-%d')} by:",
         f"  {command}",
@@ -406,6 +416,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="--search starts from these magnitudes (an earlier search's)")
     ap.add_argument("--pwm-update", choices=("immediate", "latched"), default="immediate",
                     help="the searched plants' rig.pwm_update (default immediate)")
+    ap.add_argument("--p-at", choices=("chamber", "valves"), default="chamber",
+                    help="the searched plants' sensors.p_at: the chamber transmitters at the "
+                    "cylinder or at the valves' side of the lines (default chamber)")
     args = ap.parse_args(argv)
     if args.search:
         if args.out is None:
@@ -413,14 +426,16 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         start = json.loads(args.start.read_text()) if args.start else None
         found, n_run = search(args.search, args.seeds, args.search_seed, start,
-                              args.search_timeout, args.trials_log, args.pwm_update)
+                              args.search_timeout, args.trials_log, args.pwm_update,
+                              args.p_at)
         print(f"search: {n_run} trials, {len(found)} distinct plants in "
               f"{time.perf_counter() - t0:.0f} s; checking the best "
               f"{min(args.check_top, len(found))} on seeds "
               f"{' '.join(map(str, args.check_seeds))}", flush=True)
         checked = []
         for i, (m, worst) in enumerate(found[:args.check_top]):
-            check = worst_difference(table1(build_plant(m, args.pwm_update), args.check_seeds))
+            check = worst_difference(table1(build_plant(m, args.pwm_update, args.p_at),
+                                            args.check_seeds))
             checked.append((max(worst, check), i, m))
             print(f"  #{i:2d}: seeds {' '.join(map(str, args.seeds))} {worst:6.1%}, seeds "
                   f"{' '.join(map(str, args.check_seeds))} {check:6.1%}", flush=True)
@@ -429,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({time.perf_counter() - t0:.0f} s in all)")
         for k, v in best.items():
             print(f"  {k} = {v:.3g}")
-        plant = build_plant(best, args.pwm_update)
+        plant = build_plant(best, args.pwm_update, args.p_at)
         tables = {}
         for seeds in (args.seeds, args.check_seeds):
             tables[" ".join(map(str, seeds))] = table_lines(table1(plant, seeds),
@@ -441,9 +456,11 @@ def main(argv: list[str] | None = None) -> int:
         cmd_args += ["--start", str(args.start)] if args.start else []
         if args.pwm_update != "immediate":
             cmd_args += ["--pwm-update", args.pwm_update]
+        if args.p_at != "chamber":
+            cmd_args += ["--p-at", args.p_at]
         cmd_args += ["--out", str(args.out)]
         command = "nice -n 10 .venv/bin/python benchmarks/paper_rig.py " + shlex.join(cmd_args)
-        header = header_text(best, command, tables)
+        header = header_text(best, command, tables, plant.effects)
         write_yaml(args.out, plant.to_dict(), header=header)
         params = args.out.with_suffix(".params.json")
         params.write_text(json.dumps(best, indent=1, sort_keys=True) + "\n")

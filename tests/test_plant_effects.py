@@ -25,6 +25,7 @@ from pneutune.control.plant.params import (
     P_B,
     P_BV,
     P_C,
+    P_DON,
     P_FC,
     P_FS,
     P_GAMMA,
@@ -142,6 +143,7 @@ EFFECT_KEYS = [
     ({"sensors": {"x_lag": 1.6e-4}}, "sensor lag"),
     ({"sensors": {"p_lag": 4.5e-4}}, "sensor lag"),
     ({"sensors": {"p_step": 31.0}}, "sensor lag"),
+    ({"sensors": {"p_at": "valves"}}, "transmitters at the valves"),
     ({"io": {"delay": 5.0e-4}}, "IO delay"),
     ({"supply": {"C": 3.0e-8}}, "supply droop"),
 ]
@@ -438,6 +440,57 @@ def test_pressure_sensor_lag_is_first_order() -> None:
     reading = _measure(pp, s)
     assert reading[1] == pytest.approx(p_a - 1.0e5 * math.exp(-1.0), rel=1e-6)
     assert reading[2] == p_b  # its lag started settled
+
+
+#: Chamber A behind a line of 1.7e-8 m^3/(s Pa) (0.3 m of 4 mm tube), its transmitter at the
+#: valves' side of it.
+AT_VALVES: dict[str, Any] = {"lines": {"a": {"C": 1.7e-8}}, "sensors": {"p_at": "valves"}}
+
+
+def test_transmitter_at_the_valves_reads_the_junction_while_air_flows() -> None:
+    """Held piston, chambers at ambient, a_in open: while the line carries air the transmitter
+    reads the junction, where the valve's Eq. (7) flow equals the line's (the balance is zero
+    to the solver's 1e-7 tolerance) and which leads the chamber toward the supply. With the
+    valve shut again no air flows: it reads the chamber's pressure, as chamber B's does all
+    along, and as the same plant with its transmitters at the chamber reads throughout."""
+    pp = _plant(HELD, AT_VALVES)
+    at_chamber = _plant(HELD, {"lines": AT_VALVES["lines"]})
+    p = pp.vec
+    s = dynamics.initial_state(p, p[P_XMIN], p[P_P0], p[P_P0])
+    s_c = s.copy()
+    dynamics.set_duties(p, s, 0.0, A_IN)
+    dynamics.set_duties(at_chamber.vec, s_c, 0.0, A_IN)
+    t_open = p[P_DON] + 5.0e-3  # 5 ms after the valve opened
+    _advance(pp, s, t_open)
+    _advance(at_chamber, s_c, t_open)
+    assert np.array_equal(s, s_c)  # where the transmitter sits changes no physics
+    reading = _measure(pp, s)
+    pc = s[S_PA]
+    assert pc + 1.0e4 < reading[1] < P_S  # the junction leads the chamber by > 0.1 bar
+    balance = flows.junction_balance(p, 0, 1.0, 0.0, P_S, reading[1], pc, p[P_T0])
+    m_line, _, _ = flows.line_flow(p, s.copy(), 0, 1.0, 0.0, P_S, pc, p[P_T0])
+    assert abs(balance) < 1.0e-5 * m_line
+    assert reading[2] == s[S_PB]
+    assert _measure(at_chamber, s_c)[1] == pc
+    dynamics.set_duties(p, s, t_open, SHUT)
+    _advance(pp, s, t_open + 0.02)  # past the closing delay
+    assert s[S_OPEN] == 0.0
+    assert _measure(pp, s)[1] == s[S_PA]
+
+
+def test_lagged_transmitter_at_the_valves_follows_the_junction() -> None:
+    """With p_lag the lag filters what the transmitter reads: a lag of 1 us, far below the
+    junction's milliseconds, leaves the reading at the junction's pressure (within 0.2 %),
+    not at the chamber's, which lies more than 0.1 bar below it."""
+    lagged = _plant(HELD, AT_VALVES, {"sensors": {"p_lag": 1.0e-6}})
+    plain = _plant(HELD, AT_VALVES)
+    s = dynamics.initial_state(lagged.vec, lagged.vec[P_XMIN], lagged.vec[P_P0],
+                               lagged.vec[P_P0])
+    dynamics.set_duties(lagged.vec, s, 0.0, A_IN)
+    _advance(lagged, s, lagged.vec[P_DON] + 5.0e-3)
+    junction = _measure(plain, s)[1]
+    assert junction > s[S_PA] + 1.0e4
+    assert _measure(lagged, s)[1] == pytest.approx(junction, rel=2.0e-3)
 
 
 def test_pressure_quantum_rounds_every_pressure_reading() -> None:

@@ -290,8 +290,9 @@ class SensorsConfig(_Strict):
 
     Position: a resistive 75 mm sensor read by a 16-bit card (1.2 um steps) with 5 um noise.
     Pressures (chambers and supply): 300 Pa noise (0.03 % of a 10 bar span).
-    Lags and the pressure quantum are real-rig effects, off by default: each reading is the
-    first-order-lagged true value, then noise is added, then it is quantised.
+    Lags, the pressure quantum and transmitters at the valves (``p_at``) are real-rig effects,
+    off by default: each reading is the first-order-lagged true value (of the chamber, or of
+    the valves' junction), then noise is added, then it is quantised.
     """
 
     x_noise: float = Field(5.0e-6, ge=0.0, le=1.0e-3, description="Position noise std [m]")
@@ -305,6 +306,13 @@ class SensorsConfig(_Strict):
         0.0, ge=0.0, le=0.05,
         description="Pressure transmitter first-order lag [s], chambers and supply "
         "(0.5-2 ms typical of industrial transmitters; 0: off)")
+    p_at: Literal["chamber", "valves"] = Field(
+        "chamber",
+        description="Where the chamber pressure transmitters are plumbed: chamber (at the "
+        "cylinder port, reading the chamber's pressure) or valves (at the valves' side of "
+        "the line: with a line conductance they read the junction where the chamber's two "
+        "valves meet the line, which leads the chamber while air flows; shut valves: the "
+        "chamber's pressure)")
 
 
 class SimConfig(_Strict):
@@ -371,6 +379,8 @@ class PlantConfig(_Strict):
             on.append("pre-sliding")
         if self.sensors.x_lag > 0.0 or self.sensors.p_lag > 0.0 or self.sensors.p_step > 0.0:
             on.append("sensor lag")
+        if self.sensors.p_at == "valves":
+            on.append("transmitters at the valves")
         if self.io.delay > 0.0:
             on.append("IO delay")
         if self.supply.C is not None:

@@ -31,7 +31,9 @@ exactly the code it had before they existed)
     ``gamma`` and wall convection ``h`` instead of the polytropic exponent. *Pre-sliding*: LuGre
     friction (bristle deflection z as a state) whose steady sliding is Eq. (2); no stick events,
     the end stops still hold the piston. *Sensor lags*: first-order lags of the position and
-    pressure readings, integrated along the trajectory, and a pressure quantum. *IO delay*: duty
+    pressure readings, integrated along the trajectory, and a pressure quantum. *Transmitters
+    at the valves*: a chamber's pressure read at its valves' junction, upstream of the line
+    (:func:`port_pressure`). *IO delay*: duty
     writes wait in the state and act later. *Supply droop*: a supply line of conductance C into a
     manifold whose pressure (a state) feeds the inlet valves and the supply transmitter.
     :func:`_deriv` is the paper's right-hand side; :func:`_deriv_rig` adds the effects, and
@@ -69,7 +71,7 @@ from pneutune.control.physics.friction import (
     stribeck_level,
     stribeck_stiffness,
 )
-from pneutune.control.plant.flows import chamber_flows, open_fraction, rig_flows
+from pneutune.control.plant.flows import chamber_flows, line_flow, open_fraction, rig_flows
 from pneutune.control.plant.illinois import illinois_update
 from pneutune.control.plant.params import (
     IO_MAX,
@@ -92,9 +94,11 @@ from pneutune.control.plant.params import (
     P_HEAT,
     P_HEATH,
     P_IODELAY,
+    P_LINEC,
     P_M,
     P_N,
     P_P0,
+    P_PAT,
     P_PERIM,
     P_PLAG,
     P_PNOISE,
@@ -409,6 +413,30 @@ def _lagged(y0: float, u0: float, u1: float, h: float, tau: float) -> float:
 
 
 @njit(cache=True)
+def port_pressure(p: np.ndarray, s: np.ndarray, side: int, t: float, pc: float, tc: float,
+                  p_sup: float) -> float:
+    """What chamber ``side``'s transmitter reads without noise or lag [Pa abs].
+
+    At the chamber (``sensors.p_at: chamber``, or no line conductance): ``pc``. At the valves'
+    side of a line: the junction where the chamber's two valves meet the line, solved as the
+    flows solve it at time ``t`` (``tc``: the chamber's gas temperature; ``p_sup``: the inlet's
+    pressure); with both valves shut no air flows through the line and it reads ``pc``. The
+    lines' solver state is left as it was.
+    """
+    if p[P_PAT] < 0.5 or p[P_LINEC + side] <= 0.0:
+        return pc
+    y_in = open_fraction(p, s, 2 * side, t)
+    y_out = open_fraction(p, s, 2 * side + 1, t)
+    if y_in <= 0.0 and y_out <= 0.0:
+        return pc
+    keep = s[S_PJ + side]
+    line_flow(p, s, side, y_in, y_out, p_sup, pc, tc)
+    pj = s[S_PJ + side]
+    s[S_PJ + side] = keep
+    return pj
+
+
+@njit(cache=True)
 def _lag_sensors(p: np.ndarray, s: np.ndarray, h: float, x0: float, pa0: float, pb0: float,
                  ps0: float, x1: float, pa1: float, pb1: float, ps1: float) -> None:
     """Move the lagged sensor states over a step of ``h`` along the true values."""
@@ -446,15 +474,26 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
     # the lagged sensors follow the true values from one committed state to the next
     lag = p[P_XLAG] > 0.0 or p[P_PLAG] > 0.0
     supply = p[P_SUPC] > 0.0
+    # transmitters at the valves: the lags follow the junctions' pressures
+    at_valves = lag and p[P_PAT] > 0.5
+    heat = p[P_HEAT] > 0.5
     xq, paq, pbq, psq, remq = x, pa, pb, psup if supply else p_s, h_total
+    if at_valves:
+        paq = port_pressure(p, s, 0, t0, pa, ta if heat else p[P_T0], psq)
+        pbq = port_pressure(p, s, 1, t0, pb, tb if heat else p[P_T0], psq)
     remaining = h_total
     guard = 0
     while remaining > 1.0e-13 and guard < 4 * max_steps + 64:
         guard += 1
         if lag and remq - remaining > 0.0:
             ps_now = psup if supply else p_s
-            _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, pa, pb, ps_now)
-            xq, paq, pbq, psq, remq = x, pa, pb, ps_now, remaining
+            ra, rb = pa, pb
+            if at_valves:
+                t_now = t0 + (h_total - remaining)
+                ra = port_pressure(p, s, 0, t_now, pa, ta if heat else p[P_T0], ps_now)
+                rb = port_pressure(p, s, 1, t_now, pb, tb if heat else p[P_T0], ps_now)
+            _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, ra, rb, ps_now)
+            xq, paq, pbq, psq, remq = x, ra, rb, ps_now, remaining
         t = t0 + (h_total - remaining)
         step = h if h < remaining else remaining
         if stuck:
@@ -550,8 +589,13 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
             x, v, pa, pb, ta, tb, z, psup = x1, v1, pa1, pb1, ta1, tb1, z1, ps1
             remaining -= step
     if lag and remq - remaining > 0.0:
-        _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, pa, pb,
-                     psup if supply else p_s)
+        ps_now = psup if supply else p_s
+        ra, rb = pa, pb
+        if at_valves:
+            t_now = t0 + h_total
+            ra = port_pressure(p, s, 0, t_now, pa, ta if heat else p[P_T0], ps_now)
+            rb = port_pressure(p, s, 1, t_now, pb, tb if heat else p[P_T0], ps_now)
+        _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, ra, rb, ps_now)
     s[S_X], s[S_V], s[S_PA], s[S_PB] = x, v, pa, pb
     s[S_TA], s[S_TB], s[S_Z], s[S_PSUP] = ta, tb, z, psup
     s[S_STUCK] = 1.0 if stuck else 0.0
@@ -720,7 +764,9 @@ def measure(p: np.ndarray, s: np.ndarray, p_s: float, noise: np.ndarray,
 
     ``noise`` holds four standard-normal draws. Position: true x (lagged by ``x_lag``) plus
     ``x_noise`` times a draw, then rounded to the ``x_step`` quantum. Pressures: true value
-    (lagged by ``p_lag``; the supply reading is the manifold's with a supply line) plus
+    (of the chamber, or of the valves' junction with ``sensors.p_at: valves``,
+    :func:`port_pressure`; lagged by ``p_lag``; the supply reading is the manifold's with a
+    supply line) plus
     ``p_noise`` times a draw, then rounded to the ``p_step`` quantum.
     """
     x = s[S_X]
@@ -729,11 +775,15 @@ def measure(p: np.ndarray, s: np.ndarray, p_s: float, noise: np.ndarray,
     ps = s[S_PSUP] if p[P_SUPC] > 0.0 and s[S_PSUP] > 0.0 else p_s
     if p[P_XLAG] > 0.0:
         x = s[S_XF]
-    if p[P_PLAG] > 0.0:
+    if p[P_PLAG] > 0.0:  # the lag states follow what the transmitters read
         pa = s[S_PAF]
         pb = s[S_PBF]
         if s[S_PSF] > 0.0:
             ps = s[S_PSF]
+    elif p[P_PAT] > 0.5:
+        heat = p[P_HEAT] > 0.5
+        pa = port_pressure(p, s, 0, s[S_T], pa, s[S_TA] if heat else p[P_T0], ps)
+        pb = port_pressure(p, s, 1, s[S_T], pb, s[S_TB] if heat else p[P_T0], ps)
     xm = x + p[P_XNOISE] * noise[0]
     q = p[P_XSTEP]
     if q > 0.0:

@@ -49,7 +49,8 @@ P_EXTSTATE = 78  # 1.0 when states beyond the paper's are integrated (heat, LuGr
 P_STEPK = 79  # the step rule's factor: h * stiffness / M at most this (STEP_STIFFNESS) [-]
 P_RFLAT = 80  # from this |v|/v_s on Eq. (2)'s level is F_C (physics.friction.stribeck_flat_ratio)
 P_KT = 81  # Eq. (7)'s temperature factor sqrt(T_ref / T0) of the chambers' gas [-]
-N_PARAMS = 82
+P_PAT = 82  # 1.0: the chamber transmitters read the valves' junction (sensors.p_at: valves)
+N_PARAMS = 83
 #: RK4 keeps ``h * stiffness / M`` at most this while sliding (its stability limit on the real
 #: axis is 2.79; at 2 the viscous mode's amplification per step is 0.33, no overshoot).
 #: :func:`pack_plant` copies it into ``P_STEPK``, which the compiled step rule reads, so that
@@ -184,6 +185,7 @@ def _pack_effects(cfg: PlantConfig, v: np.ndarray) -> None:
                            v[P_STEPK] * v[P_M] / max(f.sigma1 + f.b_v, 1.0e-12))
     s = cfg.sensors
     v[P_XLAG], v[P_PLAG], v[P_PSTEP] = s.x_lag, s.p_lag, s.p_step
+    v[P_PAT] = 1.0 if s.p_at == "valves" else 0.0
     v[P_IODELAY] = cfg.io.delay
     if cfg.supply.C is not None:
         v[P_SUPC], v[P_SUPB], v[P_SUPVOL] = cfg.supply.C, cfg.supply.b, cfg.supply.volume
