@@ -185,6 +185,18 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
         notes.append(f"mass: the estimate's interval [{lo:.3g}, {hi:.3g}] kg lies outside the "
                      f"{prior_basis} [{prior[0]:.3g}, {prior[1]:.3g}] kg; the data win")
         return est.M_, (lo, hi), basis, est
+    if lo > limit and hi > lo and (lo > prior[1] or hi < prior[0]):
+        # too wide to call identified, but it rules the whole prior out: the data win
+        basis = ("99 % bootstrap interval of the integrated motion equation, widened by "
+                 f"{margin:.3g} kg for its bias (0.15 b_v Ts), wider than a factor "
+                 f"{MASS_IDENTIFIABLE_RATIO:g} but outside the {prior_basis}")
+        notes.append(
+            f"mass: the estimate's interval [{lo:.3g}, {hi:.3g}] kg is wider than a factor "
+            f"{MASS_IDENTIFIABLE_RATIO:g}, but lies wholly {'above' if lo > prior[1] else 'below'}"
+            f" the {prior_basis} [{prior[0]:.3g}, {prior[1]:.3g}] kg, which the log therefore "
+            f"rules out: θ1 takes the interval (nominal {est.M_:.3g} kg); a payload the "
+            f"geometry does not know would explain it; give --mass KG to narrow it")
+        return float(np.clip(est.M_, lo, hi)), (lo, hi), basis, est
     if fast:
         # the log is sampled fast enough for the lag estimate, which failed (its note says why)
         why = ("At this sampling the mass comes from the lag of the motion behind the pressure "

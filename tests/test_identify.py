@@ -189,6 +189,43 @@ def test_mass_above_the_sampling_limit_only(monkeypatch):
         assert any(n.startswith("mass: not identifiable") for n in notes) is not reported
 
 
+def test_a_wide_mass_interval_that_rules_the_prior_out_is_taken(monkeypatch):
+    """An interval of the integrated motion equation too wide to call the mass identified
+    (hi / lo > 1.5) but wholly outside the prior (the paper's geometry: [0.454, 3.63] kg) rules
+    the prior out, as a payload the geometry cannot know does: θ1 takes the widened interval.
+    One that meets the prior leaves the prior, and so does one in the biased regime below the
+    sampling limit b_v Ts / π (0.637 kg at b_v = 500 N s/m, Ts = 4 ms). The bias margin is
+    0.15 b_v Ts = 0.3 kg."""
+    from types import SimpleNamespace
+
+    from pneutune.identify import mass_choice
+
+    class Fake:
+        def __init__(self, *a, **k):
+            pass
+
+        def fit(self, *a, **k):
+            self.M_, self.ci_ = 0.5 * (ci[0] + ci[1]), ci
+            return self
+
+    monkeypatch.setattr(mass_choice, "MassIdentifier", Fake)
+    data = SimpleNamespace(Ts=0.004, rig=PlantConfig().rig, mass_hint=None)
+    friction = SimpleNamespace(b_v_=500.0)
+    prior = mass_choice.mass_prior(data.rig)[0]
+    assert prior == pytest.approx((0.454, 3.63), abs=5e-3)
+    for ci, taken in (((5.0, 9.0), True), ((2.0, 5.0), False), ((0.05, 0.2), False)):
+        notes: list[str] = []
+        M, rng, basis, _ = mass_choice.choose_mass(data, friction, None, None, 0.05, 0, notes)
+        if taken:
+            assert rng == pytest.approx((4.7, 9.3))
+            assert M == pytest.approx(7.0)
+            assert "outside the prior" in basis
+            assert any("rules out" in n for n in notes)
+        else:
+            assert rng == pytest.approx(prior)
+            assert any(n.startswith("mass: not identifiable") for n in notes)
+
+
 def test_joint_friction_fit_without_fast_samples():
     """With the fast samples of one direction masked out (v < -20 mm/s) the two-stage fit
     cannot separate F_n from F_C: the joint Stribeck fit is used, and on data/run.mcap it lands
