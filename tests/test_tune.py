@@ -457,7 +457,8 @@ def test_progress_bar_goes_to_stderr(tmp_path: Path, capsys: pytest.CaptureFixtu
 def test_report_names_the_paper_controller_as_users_see_it(tmp_path: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """From a checkout report.md names ``data/controller-paper.yaml`` (the README's and the
-    Makefile's name, a link to the packaged file); elsewhere the packaged file itself."""
+    Makefile's name, a link to the packaged file); elsewhere the packaged file itself, by a
+    path that does not climb out of the working directory."""
     from pneutune.control.contracts.controller import PAPER_CONTROLLER
     from pneutune.tune.api import paper_path
 
@@ -465,6 +466,7 @@ def test_report_names_the_paper_controller_as_users_see_it(tmp_path: Path,
     assert paper_path() == "data/controller-paper.yaml"
     monkeypatch.chdir(tmp_path)
     assert (tmp_path / paper_path()).resolve() == PAPER_CONTROLLER.resolve()
+    assert not paper_path().startswith("..")  # from outside the tree: its absolute path
 
 
 def test_report_tells_the_valves_limit_from_chattering_gains() -> None:

@@ -45,7 +45,7 @@ from pneutune.control.contracts.controller import (
     save_controller,
 )
 from pneutune.control.contracts.model import ModelConfig, load_model
-from pneutune.control.contracts.yamlio import write_yaml
+from pneutune.control.contracts.yamlio import validate_model, write_yaml
 from pneutune.control.errors import ConfigError, argument_error
 from pneutune.control.sim.scenarios import SCENARIOS
 
@@ -275,14 +275,45 @@ def provenance(model_sha256: str, study: str, trial: int, value: float, seed: in
 
 def paper_path() -> str:
     """How report.md names the paper's controller: ``data/controller-paper.yaml`` when run from
-    a checkout (where that link points at the packaged file), else the packaged file's path."""
+    a checkout (where that link points at the packaged file), else the packaged file's path
+    (relative when it lies below the working directory, else absolute)."""
     link = Path("data") / "controller-paper.yaml"
     try:
         if link.resolve() == PAPER_CONTROLLER.resolve():
             return link.as_posix()
     except OSError:
         pass
-    return os.path.relpath(PAPER_CONTROLLER)
+    rel = os.path.relpath(PAPER_CONTROLLER)
+    return str(PAPER_CONTROLLER.resolve()) if rel.startswith(os.pardir) else rel
+
+
+def paper_on_rig(paper: ControllerConfig, tuned: ControllerConfig
+                 ) -> tuple[ControllerConfig, bool]:
+    """The paper's controller as a user compares it on the tuned controller's rig.
+
+    The paper's file carries the paper's ``rig`` and ``limits`` blocks; on another rig the
+    commissioning recipe (docs/commissioning.md) puts the rig's own blocks into a copy of it,
+    and so does this: the paper's gains, adaptation, filters, valves and PWM curve, with
+    ``tuned``'s ``rig`` and ``limits``.
+
+    Parameters
+    ----------
+    paper : ControllerConfig
+        ``data/controller-paper.yaml``.
+    tuned : ControllerConfig
+        The tuned controller (the model's rig and limits).
+
+    Returns
+    -------
+    (ControllerConfig, bool)
+        The baseline, and whether its blocks were replaced.
+    """
+    if paper.rig == tuned.rig and paper.limits == tuned.limits:
+        return paper, False
+    data = paper.to_dict()
+    mine = tuned.to_dict()
+    data["rig"], data["limits"] = mine["rig"], mine["limits"]
+    return validate_model(ControllerConfig, data, "<the paper's controller on this rig>"), True
 
 
 def failure_summary(study: optuna.Study) -> str:
@@ -424,7 +455,7 @@ def tune(model: Any, settings: TuneSettings | None = None,
                       [*feas.notes(), *guard.notes(),
                        *([] if selection is None else selection.notes())])
     tuned = controller_from_params(model_cfg, best.params, prov, dead_zone=dead_zone)
-    paper = load_controller(PAPER_CONTROLLER)
+    paper, moved = paper_on_rig(load_controller(PAPER_CONTROLLER), tuned)
     objective = TuneObjective(model_cfg, seed, objective_settings, jobs=jobs)
     comp = compare(objective, tuned, paper)
     behind = behind_paper(comp, best.number, settings)
@@ -437,7 +468,7 @@ def tune(model: Any, settings: TuneSettings | None = None,
     report_info = {
         "model": name, "model_sha256": model_sha, "storage": redact_url(storage),
         "n_trials": settings.trials, "counts": counts,
-        "paper_path": paper_path(), "feasibility": feas.notes(),
+        "paper_path": paper_path(), "paper_moved": moved, "feasibility": feas.notes(),
         "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
         "behind_paper": behind, "log_check": log_check.lines(),

@@ -212,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             info(f"{len(summary['restarts'])} restarts in {summary['wall_s_restarts']:.1f} s; "
                  f"kept seed {summary['seed']}'s study")
         info(f"best trial #{result.best.number}: objective {result.best.value:.4f} (paper's "
-             f"gains: {paper if paper is None else round(paper, 4)})")
+             f"gains: {'n/a, a run of them failed' if paper is None else round(paper, 4)})")
         info(f"wrote {summary['controller']}, {summary['report']}")
     return 0
 

@@ -181,6 +181,12 @@ def _heldout(comp: Comparison) -> list[str]:
     return lines
 
 
+def _moved(info: dict[str, Any]) -> str:
+    """What report.md adds to the paper's file name when its rig and limits were the model's
+    (:func:`~pneutune.tune.api.paper_on_rig`)."""
+    return " with this model's rig and limits blocks" if info.get("paper_moved") else ""
+
+
 def plot_history(study: optuna.Study, path: Path) -> Path:
     """Objective of each trial and the best so far (PNG).
 
@@ -390,7 +396,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         f"{counts['FAIL']} failed (wanted {info['n_trials']} complete + pruned)",
         f"- {'trial kept by the held-out guard' if info.get('guard_moved') else 'best trial'}: "
         f"#{best.number}, objective {best.value:.4f}; "
-        f"`{info['paper_path']}` on the same plants: {_fmt(comp.paper.value, 4)}"
+        f"`{info['paper_path']}`{_moved(info)} on the same plants: {_fmt(comp.paper.value, 4)}"
         + (f"; trial #0 (the paper's gains with the model's θ box): {paper_trial:.4f}"
            if paper_trial is not None else ""),
         f"- objective: mean over {len(objective.scenarios)} scenarios of the CVaR "
@@ -398,7 +404,7 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         "½(E_p/E_p\\* + E_rms/E_rms\\*) + penalties (chattering above "
         f"{st.switches_free:g} switches/s, pressure outside [{st.p_low_fraction:g} p0, p_max], "
         "end-stop contact); 1 = the paper's Table 1 on every scenario. docs/tuning.md.",
-        f"- controller: `{info['controller']}`; baseline: `{info['paper_path']}`",
+        f"- controller: `{info['controller']}`; baseline: `{info['paper_path']}`{_moved(info)}",
         "",
         *_feasibility(info.get("feasibility") or []),
         *_guard(info.get("guard") or []),
