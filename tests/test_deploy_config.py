@@ -168,6 +168,25 @@ def test_plant_timing_mismatch(tmp_path, capsys):
     assert "rig.Ts" in line and str(plant) in line and "0.005" in line
 
 
+def test_another_cylinders_controller_runs_with_a_warning() -> None:
+    """Geometry differences run (model error), but each is said: the paper's controller on a
+    63 mm bore (A_a 3.117e-3 m^2 against its 7.854e-3: -60 %) with a 40 mm stroke, inside its
+    limits [-1.5, 48.5] mm only at the start; on the paper's own rig, nothing."""
+    from pneutune.control.contracts.controller import load_controller
+    from pneutune.control.contracts.plant import PlantConfig
+    from pneutune.control.rig.deploy import geometry_warnings
+
+    paper = load_controller(PAPER_YAML)
+    assert geometry_warnings(paper, PlantConfig().rig_metadata(), "c.yaml", "sim") == []
+    other = PlantConfig().with_updates({"rig": {"A_a": 3.117e-3, "A_b": 2.803e-3,
+                                                "x_min": 0.0, "x_max": 0.04}})
+    found = geometry_warnings(paper, other.rig_metadata(), "c.yaml", "plant p.yaml")
+    assert len(found) == 2
+    assert "A_a 0.007854 against 0.003117 m^2 (+152%)" in found[0]
+    assert "V0a" not in found[0]  # the dead volumes are the same
+    assert "[-1.50, 48.50] mm of c.yaml reach past the rig's stroke [0.00, 40.00]" in found[1]
+
+
 @pytest.mark.parametrize(("argv", "word"), [
     (["--scenario", "sine-9hz"], "unknown scenario"),
     (["--scenario", "sine-0.5hz,sine-9hz"], "unknown scenario 'sine-9hz'"),

@@ -102,6 +102,61 @@ def check_rig_compatible(controller: ControllerConfig, rig_meta: dict[str, Any],
                               f"got {mine!r} {unit}")
 
 
+#: Relative difference of a geometry key of the rig block above which deploy warns [-].
+GEOMETRY_RTOL = 0.05
+#: The rig block's keys a controller is designed on that deploy compares with the rig's.
+GEOMETRY_KEYS: tuple[tuple[str, str, float], ...] = (
+    ("A_a", "m^2", 1.0), ("A_b", "m^2", 1.0), ("V0a", "m^3", 1.0), ("V0b", "m^3", 1.0))
+
+
+def geometry_warnings(controller: ControllerConfig, rig_meta: dict[str, Any],
+                      controller_file: str, rig_source: str) -> list[str]:
+    """What differs between the controller's rig block and the rig, short of an error.
+
+    Geometry differences are model error, which the robust terms are for, so they run; but a
+    controller whose areas or volumes are another cylinder's was most likely made for another
+    axis, and position limits past the rig's stroke leave the stroke supervisor unable to trip
+    before an end stop. Each is one warning.
+
+    Parameters
+    ----------
+    controller : ControllerConfig
+    rig_meta : dict
+        The rig's ``rig`` block (a plant's, or what a driver's hello reports).
+    controller_file, rig_source : str
+        For the messages.
+
+    Returns
+    -------
+    list of str
+        Empty when the controller matches the rig.
+    """
+    out = []
+    diffs = []
+    for key, unit, scale in GEOMETRY_KEYS:
+        mine, theirs = float(getattr(controller.rig, key)), rig_meta.get(key)
+        if theirs is None or not float(theirs) > 0.0:
+            continue
+        theirs = float(theirs)
+        if abs(mine / theirs - 1.0) > GEOMETRY_RTOL:
+            diffs.append(f"{key} {mine * scale:.4g} against {theirs * scale:.4g} {unit} "
+                         f"({mine / theirs - 1.0:+.0%})")
+    if diffs:
+        out.append(f"the rig block of {controller_file} is another cylinder's than the rig's "
+                   f"({rig_source}): {', '.join(diffs)}; it runs on that model error: identify "
+                   f"and tune on this rig")
+    lo, hi = rig_meta.get("x_min"), rig_meta.get("x_max")
+    lim = controller.limits
+    if lo is not None and hi is not None and (lim.x_min < float(lo) - 1e-9
+                                              or lim.x_max > float(hi) + 1e-9):
+        out.append(f"limits [{lim.x_min * 1e3:.2f}, {lim.x_max * 1e3:.2f}] mm of "
+                   f"{controller_file} reach past the rig's stroke [{float(lo) * 1e3:.2f}, "
+                   f"{float(hi) * 1e3:.2f}] mm ({rig_source}): the stroke supervisor cannot "
+                   f"trip before the piston meets that end stop; put the rig's limits in the "
+                   f"controller")
+    return out
+
+
 def check_reference_in_limits(controller: ControllerConfig, scenario: Scenario,
                               rig_meta: dict[str, Any], controller_file: str) -> None:
     """The scenario's reference must lie within the controller's position limits.
@@ -363,6 +418,10 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
     runs: list[ScenarioRun] = []
     faults: list[dict[str, Any]] = []
     warnings: list[dict[str, Any]] = []
+    if command is None:
+        warnings += [{"scenario": "all", "t": 0.0, "level": "warning", "code": "rig_mismatch",
+                      "message": m}
+                     for m in geometry_warnings(cfg, plant_cfg.rig_metadata(), name, rig_source)]
     disable = None if progress is None else not progress
     for sc in tqdm(resolved, desc="scenarios", unit="scenario", disable=disable, leave=False):
         the_rig: Rig
@@ -387,6 +446,11 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
                 break
         try:
             check_rig_compatible(cfg, the_rig.rig_metadata(), name, f"rig {kind}")
+            if command is not None and not runs:  # the driver's rig, as its hello told it
+                warnings += [{"scenario": "all", "t": 0.0, "level": "warning",
+                              "code": "rig_mismatch", "message": m}
+                             for m in geometry_warnings(cfg, the_rig.rig_metadata(), name,
+                                                        f"rig {kind}")]
             check_sampled_at_control_rate(the_rig, kind)
             check_reference_in_limits(cfg, sc, the_rig.rig_metadata(), name)
             res = run_scenario(cfg, sc, the_rig, supervisor=Supervisor(settings),
@@ -441,6 +505,7 @@ __all__ = [
     "check_sampled_at_control_rate",
     "controller_source",
     "deploy",
+    "geometry_warnings",
     "parse_rig",
     "scenario_log_path",
 ]
