@@ -328,8 +328,9 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
         theta = prior_theta(theta, friction)
     elif not friction.stiction_resolved_:
         notes.append("friction: the stiction peak is not resolved by the sliding samples "
-                     f"(F_S {friction.F_S_:.3g} N, F_C {friction.F_C_:.3g} N, exponent "
-                     f"{friction.alpha_:.3g}); the Stribeck velocity and exponent are weakly "
+                     f"(their fit: F_S {friction.F_S_:.3g} N, F_C {friction.F_C_:.3g} N, "
+                     f"exponent {friction.alpha_:.3g}; model.yaml's F_S also weighs the stick "
+                     "and break-away samples); the Stribeck velocity and exponent are weakly "
                      f"identified from the {data.Ts * 1e3:g} ms samples the friction fit uses, "
                      "and θ4 allows a stiction excess of half F_C")
     sources = Sources(pl, vpl, vfit, valves, friction) if several else None
