@@ -11,6 +11,7 @@ die or press Ctrl-C).
 from __future__ import annotations
 
 import json
+import math
 import shlex
 import signal
 import subprocess
@@ -115,6 +116,24 @@ def test_segments_select_groups_and_labels():
     assert both[0].label == "rest:start" and both[-1].label == "rest:end"
     with pytest.raises(PneutuneError, match=r"names no segment.*valves:a"):
         select_segments(segs, "valves:c")
+
+
+def test_the_sines_swing_30_percent_of_the_stroke_up_to_300_mm_per_s():
+    """On the paper's 50 mm stroke every sine swings 15 mm (3 Hz: 15 mm x 2 pi x 3 = 283 mm/s);
+    on a 1 m stroke 300 mm at 0.5 Hz would reach 942 mm/s, so each sine's amplitude is
+    0.3 m/s / (2 pi f): 95.5 mm at 0.5 Hz, 15.9 mm at 3 Hz."""
+    def sines(rig_meta):
+        return {s.params["freq"]: s.params["amplitude"]
+                for s in experiment_protocol("identification", rig_meta)
+                if s.label.startswith("acceleration:sine")}
+
+    assert sines(PLANT.rig_metadata()) == pytest.approx({0.5: 0.015, 1.0: 0.015, 2.0: 0.015,
+                                                          3.0: 0.015})
+    long_rig = PlantConfig().with_updates({"rig": {"x_min": 0.0, "x_max": 1.0}}).rig_metadata()
+    amp = sines(long_rig)
+    assert amp[0.5] == pytest.approx(0.3 / math.pi, rel=1e-12)  # 95.5 mm
+    assert amp[3.0] == pytest.approx(0.3 / (6.0 * math.pi), rel=1e-12)  # 15.9 mm
+    assert max(a * 2.0 * math.pi * f for f, a in amp.items()) == pytest.approx(0.3)
 
 
 # --- the command -----------------------------------------------------------------------------

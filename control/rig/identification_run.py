@@ -19,7 +19,8 @@ on any rig, simulated or real. Segments, in order, each labelled on ``/experimen
    duties: this gives C, b and the PWM curve.
 3. The same for chamber B against the A-side end stop (a_out open, b_in / b_out swept).
 4. ``constant_speed``: position-loop ramps at several speeds in both directions (friction).
-5. ``acceleration``: position-loop sines of rising frequency whose duties saturate (mass).
+5. ``acceleration``: position-loop sines of rising frequency whose duties saturate (mass):
+   30 % of the stroke, less where that would pass :data:`MAX_SINE_SPEED`.
 6. ``rest`` again.
 
 Each part starts with a move of the position loop along a ramp at :data:`TRAVEL_SPEED` from
@@ -59,6 +60,12 @@ FULL_DUTY_CYCLES: int = 5
 DEFAULT_SPEEDS: tuple[float, ...] = (0.003, 0.006, 0.012, 0.025, 0.05, 0.1)
 #: Sine frequencies [Hz] and cycles of the acceleration segments.
 DEFAULT_SINES: tuple[tuple[float, int], ...] = ((0.5, 2), (1.0, 3), (2.0, 4), (3.0, 6))
+#: Sine amplitude of the acceleration segments, as a fraction of the stroke [-].
+SINE_STROKE_FRACTION: float = 0.3
+#: Highest peak speed of a sine [m/s]: the paper's rig (50 mm stroke) reaches 0.28 m/s at
+#: 3 Hz with 30 % of its stroke; a longer stroke keeps that speed with a smaller amplitude
+#: (a 1 m stroke would otherwise swing 300 mm at 3 Hz, 5.7 m/s).
+MAX_SINE_SPEED: float = 0.3
 #: Speed of the ramp that takes the piston onto an end stop [m/s]: a fifth of what fully open
 #: valves reached on the paper's rig (0.17-0.25 m/s), so the stop takes 1/25 of that kinetic
 #: energy.
@@ -385,7 +392,8 @@ def identification_protocol(x_min: float, x_max: float,
     segs.append(move_segment("hold:start_acceleration", "hold", mid, TRAVEL_SPEED, band,
                              stroke, "acceleration", {"x": mid}))
     for freq, cycles in sines:
-        segs.append(_sine(mid, 0.3 * stroke, freq, cycles, "acceleration"))
+        amp = min(SINE_STROKE_FRACTION * stroke, MAX_SINE_SPEED / (2.0 * math.pi * freq))
+        segs.append(_sine(mid, amp, freq, cycles, "acceleration"))
     segs.append(_hold(mid, 1.0, "hold:end", "acceleration"))
     segs.append(Segment("rest:end", "rest", 2.0, {}, np.zeros(4), group="rest"))
     return segs
