@@ -118,10 +118,10 @@ def test_segments_select_groups_and_labels():
         select_segments(segs, "valves:c")
 
 
-def test_the_sines_swing_30_percent_of_the_stroke_up_to_300_mm_per_s():
+def test_the_sines_swing_30_percent_of_the_stroke_up_to_500_mm_per_s():
     """On the paper's 50 mm stroke every sine swings 15 mm (3 Hz: 15 mm x 2 pi x 3 = 283 mm/s);
     on a 1 m stroke 300 mm at 0.5 Hz would reach 942 mm/s, so each sine's amplitude is
-    0.3 m/s / (2 pi f): 95.5 mm at 0.5 Hz, 15.9 mm at 3 Hz."""
+    0.5 m/s / (2 pi f): 159 mm at 0.5 Hz, 26.5 mm at 3 Hz."""
     def sines(rig_meta):
         return {s.params["freq"]: s.params["amplitude"]
                 for s in experiment_protocol("identification", rig_meta)
@@ -131,9 +131,9 @@ def test_the_sines_swing_30_percent_of_the_stroke_up_to_300_mm_per_s():
                                                           3.0: 0.015})
     long_rig = PlantConfig().with_updates({"rig": {"x_min": 0.0, "x_max": 1.0}}).rig_metadata()
     amp = sines(long_rig)
-    assert amp[0.5] == pytest.approx(0.3 / math.pi, rel=1e-12)  # 95.5 mm
-    assert amp[3.0] == pytest.approx(0.3 / (6.0 * math.pi), rel=1e-12)  # 15.9 mm
-    assert max(a * 2.0 * math.pi * f for f, a in amp.items()) == pytest.approx(0.3)
+    assert amp[0.5] == pytest.approx(0.5 / math.pi, rel=1e-12)  # 159 mm
+    assert amp[3.0] == pytest.approx(0.5 / (6.0 * math.pi), rel=1e-12)  # 26.5 mm
+    assert max(a * 2.0 * math.pi * f for f, a in amp.items()) == pytest.approx(0.5)
 
 
 # --- the command -----------------------------------------------------------------------------

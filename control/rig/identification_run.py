@@ -62,10 +62,12 @@ DEFAULT_SPEEDS: tuple[float, ...] = (0.003, 0.006, 0.012, 0.025, 0.05, 0.1)
 DEFAULT_SINES: tuple[tuple[float, int], ...] = ((0.5, 2), (1.0, 3), (2.0, 4), (3.0, 6))
 #: Sine amplitude of the acceleration segments, as a fraction of the stroke [-].
 SINE_STROKE_FRACTION: float = 0.3
-#: Highest peak speed of a sine [m/s]: the paper's rig (50 mm stroke) reaches 0.28 m/s at
-#: 3 Hz with 30 % of its stroke; a longer stroke keeps that speed with a smaller amplitude
-#: (a 1 m stroke would otherwise swing 300 mm at 3 Hz, 5.7 m/s).
-MAX_SINE_SPEED: float = 0.3
+#: Highest peak speed of a sine [m/s], a common rating of standard cylinders and their
+#: cushions: the paper's rig (50 mm stroke) reaches 0.28 m/s at 3 Hz with 30 % of its stroke;
+#: a longer stroke keeps to this speed with a smaller amplitude (a 1 m stroke would otherwise
+#: swing 300 mm at 3 Hz, 5.7 m/s). A lower cap starves the mass estimate of acceleration: at
+#: 0.3 m/s a 200 mm stroke's 4 ms log gave a mass 12 % high.
+MAX_SINE_SPEED: float = 0.5
 #: Speed of the ramp that takes the piston onto an end stop [m/s]: a fifth of what fully open
 #: valves reached on the paper's rig (0.17-0.25 m/s), so the stop takes 1/25 of that kinetic
 #: energy.
