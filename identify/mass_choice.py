@@ -88,6 +88,23 @@ def _lag_mass(log: Dataset | Sequence[Dataset], friction: FrictionIdentifier,
     return None
 
 
+#: An estimate this many times the prior's upper end is more likely the sensors' lag than mass.
+FAR_ABOVE_PRIOR = 5.0
+
+
+def _far_above(lo: float, prior: tuple[float, float], b_v: float) -> str:
+    """What a note adds when the data put the mass far above the prior: the likelier cause."""
+    if not lo > FAR_ABOVE_PRIOR * prior[1]:
+        return ""
+    return (f". An estimate over {FAR_ABOVE_PRIOR:g} times the prior's upper end is more often "
+            f"the sensors than a payload: pressure readings that lead the chambers' pressures "
+            f"(transmitters at the valves' side of a line or fitting, which read its pressure "
+            f"drop) or a position sensor lagging the transmitters add {b_v * 1e-3:.2g} kg per "
+            f"ms of lag; tune then works on that effective mass, which is what the controller "
+            f"sees through these sensors. If the axis carries no such payload, check where the "
+            f"transmitters are plumbed, or give --mass KG")
+
+
 def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit: np.ndarray,
                 mass: float | None, mass_tol: float, seed: int, notes: list[str],
                 log: Dataset | Sequence[Dataset] | None = None,
@@ -183,7 +200,8 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
                 basis += f", intersected with the {prior_basis}"
             return float(np.clip(est.M_, *both)), both, basis, est
         notes.append(f"mass: the estimate's interval [{lo:.3g}, {hi:.3g}] kg lies outside the "
-                     f"{prior_basis} [{prior[0]:.3g}, {prior[1]:.3g}] kg; the data win")
+                     f"{prior_basis} [{prior[0]:.3g}, {prior[1]:.3g}] kg; the data win"
+                     + _far_above(lo, prior, friction.b_v_))
         return est.M_, (lo, hi), basis, est
     if lo > limit and hi > lo and (lo > prior[1] or hi < prior[0]):
         # too wide to call identified, but it rules the whole prior out: the data win
@@ -195,7 +213,8 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
             f"{MASS_IDENTIFIABLE_RATIO:g}, but lies wholly {'above' if lo > prior[1] else 'below'}"
             f" the {prior_basis} [{prior[0]:.3g}, {prior[1]:.3g}] kg, which the log therefore "
             f"rules out: θ1 takes the interval (nominal {est.M_:.3g} kg); a payload the "
-            f"geometry does not know would explain it; give --mass KG to narrow it")
+            f"geometry does not know would explain it; give --mass KG to narrow it"
+            + _far_above(lo, prior, friction.b_v_))
         return float(np.clip(est.M_, lo, hi)), (lo, hi), basis, est
     if fast:
         # the log is sampled fast enough for the lag estimate, which failed (its note says why)

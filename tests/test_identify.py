@@ -195,7 +195,8 @@ def test_a_wide_mass_interval_that_rules_the_prior_out_is_taken(monkeypatch):
     the prior out, as a payload the geometry cannot know does: θ1 takes the widened interval.
     One that meets the prior leaves the prior, and so does one in the biased regime below the
     sampling limit b_v Ts / π (0.637 kg at b_v = 500 N s/m, Ts = 4 ms). The bias margin is
-    0.15 b_v Ts = 0.3 kg."""
+    0.15 b_v Ts = 0.3 kg. An interval starting over 5 times the prior's upper end (18.2 kg) is
+    still taken, with a note that sensors behind a line or lagging are the likelier cause."""
     from types import SimpleNamespace
 
     from pneutune.identify import mass_choice
@@ -213,14 +214,18 @@ def test_a_wide_mass_interval_that_rules_the_prior_out_is_taken(monkeypatch):
     friction = SimpleNamespace(b_v_=500.0)
     prior = mass_choice.mass_prior(data.rig)[0]
     assert prior == pytest.approx((0.454, 3.63), abs=5e-3)
-    for ci, taken in (((5.0, 9.0), True), ((2.0, 5.0), False), ((0.05, 0.2), False)):
+    for ci, taken in (((5.0, 9.0), True), ((2.0, 5.0), False), ((0.05, 0.2), False),
+                      ((20.0, 30.0), True)):
         notes: list[str] = []
         M, rng, basis, _ = mass_choice.choose_mass(data, friction, None, None, 0.05, 0, notes)
         if taken:
-            assert rng == pytest.approx((4.7, 9.3))
-            assert M == pytest.approx(7.0)
+            assert rng == pytest.approx((ci[0] - 0.3, ci[1] + 0.3))
+            assert M == pytest.approx(0.5 * (ci[0] + ci[1]))
             assert "outside the prior" in basis
             assert any("rules out" in n for n in notes)
+            # over 5 times the prior's 3.63 kg: the note names the likelier cause, the sensors
+            far = any("check where the transmitters are plumbed" in n for n in notes)
+            assert far is (ci[0] - 0.3 > 5.0 * prior[1])
         else:
             assert rng == pytest.approx(prior)
             assert any(n.startswith("mass: not identifiable") for n in notes)
