@@ -20,17 +20,22 @@ $(STAMP): pyproject.toml $(wildcard control/law/c/*.c control/law/c/*.h)
 	touch $(STAMP)
 
 ## demo: the whole loop on the simulated rig: log -> identify -> tune -> deploy -> reports/summary.md
-## (the identification run logs every 0.5 ms, so identify estimates the moving mass too)
+## (the identification run logs every 0.5 ms, so identify estimates the moving mass too). The rig
+## is the paper's with real-rig effects (PLANT: data/plant-paper-rig.yaml, which reproduces
+## Table 1 with the paper's gains); PLANT= (empty) runs the ideal rig of the paper's model.
+PLANT  ?= data/plant-paper-rig.yaml
+RIG    := sim$(if $(PLANT),:$(PLANT))
 demo: $(STAMP)
-	$(BIN)/record --experiment identification --seed $(SEED) --out reports/demo/run.mcap
+	$(BIN)/record --experiment identification --rig $(RIG) --seed $(SEED) \
+		--out reports/demo/run.mcap
 	$(BIN)/identify reports/demo/run.mcap --out reports/identify
 	$(BIN)/tune --model reports/identify/model.yaml --trials $(TRIALS) --seed $(SEED) \
 		--out reports/tune
 	mkdir -p reports/deploy
-	$(BIN)/deploy data/controller-paper.yaml --scenario all --seed $(SEED) --json \
+	$(BIN)/deploy data/controller-paper.yaml --rig $(RIG) --scenario all --seed $(SEED) --json \
 		--log reports/deploy/paper.mcap --plots reports/deploy/figures-paper \
 		> reports/deploy/paper.json
-	$(BIN)/deploy reports/tune/controller.yaml --scenario all --seed $(SEED) --json \
+	$(BIN)/deploy reports/tune/controller.yaml --rig $(RIG) --scenario all --seed $(SEED) --json \
 		--log reports/deploy/tuned.mcap --plots reports/deploy/figures-tuned \
 		> reports/deploy/tuned.json
 	$(BIN)/python -m pneutune.control.summary --paper reports/deploy/paper.json \

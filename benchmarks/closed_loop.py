@@ -8,7 +8,8 @@ Prints:
 * the latency of one controller step called from Python (`darc.step`), p50 and p99 over
   20,000 calls (target: p99 <= 20 us), and of the compiled `step_into` inside the loop;
 * the cost of each real-rig effect (:mod:`pneutune.control.sim.rig_effects`, typical
-  magnitudes): the same 20 s run with that effect alone and with all of them, simulated seconds
+  magnitudes): the same 20 s run with that effect alone and with all of them (and with the
+  pressure transmitters at the valves' side of the lines), simulated seconds
   per wall second (best of 3) against the plant without effects measured beside it (skip with
   ``--no-effects``).
 
@@ -88,6 +89,10 @@ def effect_costs(controller: object, cfg: np.ndarray, sc: Scenario) -> None:
     for name in rig_effects.EFFECTS:
         cases[name] = PlantConfig().with_updates(rig_effects.plant_updates(m, (name,)))
     cases["all"] = PlantConfig().with_updates(rig_effects.plant_updates(m))
+    # the transmitters at the valves read nothing new without a line conductance
+    at_valves = {"sensors": {"p_at": "valves"}}
+    cases["lines, transmitters at the valves"] = cases["lines"].with_updates(at_valves)
+    cases["all, transmitters at the valves"] = cases["all"].with_updates(at_valves)
     best = {}
     for name, plant in cases.items():
         simulate_scenario(controller, sc, plant, seed=1, cfg_vec=cfg)  # compile or load

@@ -367,7 +367,7 @@ def header_text(m: Mapping[str, float], command: str, tables: Mapping[str, list[
                        "published ranges of control/sim/rig_effects.py (MAGNITUDES) and "
                        "benchmarks/paper_rig.py (FRICTION); docs/real-rig.md gives the sources. "
                        "With the paper's gains (data/controller-paper.yaml) it reproduces "
-                       "Table 1 (below).", 92),
+                       "Table 1 (below).", 92, break_on_hyphens=False),
         "",
         f"Made {time.strftime('%Y-%m-%d')} by:",
         f"  {command}",

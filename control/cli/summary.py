@@ -68,6 +68,17 @@ def _figure_links(scenario: str, figures: Mapping[str, Sequence[str | os.PathLik
     return ", ".join(links)
 
 
+def _rig_phrase(sim: Mapping[str, Any]) -> str:
+    """Which simulated rig a ``deploy --json`` output ran on, as the summary says it."""
+    rig = str(sim.get("rig", "sim"))
+    kind, _, plant = rig.partition(":")
+    if kind in ("sim", "pipe-sim") and plant:
+        return f"the simulated rig of `{plant}`"
+    if kind in ("sim", "pipe-sim"):
+        return "the simulated rig (plant.yaml defaults, the paper's rig without real-rig effects)"
+    return f"the rig `{rig}`"
+
+
 def summary_markdown(paper_sim: Mapping[str, Any], tuned_sim: Mapping[str, Any] | None = None,
                      figures: Mapping[str, Sequence[str | os.PathLike[str]]] | str
                      | os.PathLike[str] | None = None, base: str | os.PathLike[str] = ".",
@@ -82,9 +93,9 @@ def summary_markdown(paper_sim: Mapping[str, Any], tuned_sim: Mapping[str, Any] 
         "",
         "E_p / E_rms in mm: peak and RMS of the tracking error e1 over the last three periods of",
         "the reference (the paper's Sec. 5.1 indices). Paper: Table 1 of Qian et al. (2014),",
-        "measured on their rig. Simulation: `deploy` on the simulated rig (plant.yaml defaults,",
-        "the paper's rig), with the paper's controller (data/controller-paper.yaml) and with the",
-        "tuned one (reports/tune/controller.yaml).",
+        f"measured on their rig. Simulation: `deploy` on {_rig_phrase(paper_sim)}, with the",
+        "paper's controller (data/controller-paper.yaml) and with the tuned one",
+        "(reports/tune/controller.yaml).",
         "",
         "| scenario | paper, Table 1 (rig) | paper's config (sim) | tuned config (sim) | figures |",
         "|---|---|---|---|---|",
