@@ -175,7 +175,8 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
                 f"measured pressure force, which holds the sensors' lags too: each ms the "
                 f"position sensor lags more than the pressure transmitters adds "
                 f"{friction.b_v_ * 1e-3:.2g} kg (b_v times the lag), each ms less takes it "
-                f"off; where the sensors' datasheets say they differ, give --mass KG")
+                f"off; where the sensors' datasheets say they differ, give --mass KG"
+                + _far_above(lag.ci_[0], prior, friction.b_v_))
             return lag.M_, lag.ci_, (
                 f"99 % bootstrap interval of tau b_v, tau the lag of the motion behind the "
                 f"pressure force ({where}), widened by "
