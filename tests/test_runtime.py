@@ -215,6 +215,10 @@ def test_summary_markdown(tmp_path):
            "[tracking](figures/sine-0.5hz-tracking.png) |" in text
     assert "| disturbance-0.5hz | – | 0.39 / 0.14 (fault) | – |" in text
     assert summary_markdown(paper).count("\n| ") == 3  # header + 2 rows
+    # the rig deploy ran on, from its --json "rig": the default plant, or a plant file
+    assert "plant.yaml defaults, the paper's rig without real-rig effects" in text
+    on_file = summary_markdown({**paper, "rig": "sim:data/plant-paper-rig.yaml"})
+    assert "the simulated rig of `data/plant-paper-rig.yaml`" in on_file
 
 
 def test_deploy_plots_write_the_figures(tmp_path):
