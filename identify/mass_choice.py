@@ -110,7 +110,7 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
                 log: Dataset | Sequence[Dataset] | None = None,
                 log_fit: np.ndarray | Sequence[np.ndarray] | None = None,
                 names: Sequence[str] = (), pooled: Pool | None = None,
-                unexcited: Sequence[str] = (),
+                unexcited: Sequence[str] = (), readings_lead: bool = False,
                 ) -> tuple[float, tuple[float, float], str,
                            MassIdentifier | LagMassIdentifier | None]:
     """The mass, its range, their basis and the estimator (module docstring).
@@ -142,6 +142,10 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
     unexcited : sequence of str
         The experiments of logs sampled fast enough for the lag estimate that lack the
         segments exciting the mass (so not in ``log``): the advice is then those segments.
+    readings_lead : bool
+        The pressure readings lead the chambers' pressures
+        (:func:`~pneutune.identify.transmitters.check_transmitters`): both estimates would take
+        that lead for mass, so the mass is the prior.
 
     Returns
     -------
@@ -153,6 +157,11 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
         rng = (mass * (1.0 - mass_tol), mass * (1.0 + mass_tol))
         return mass, rng, f"given by the user (±{mass_tol:.0%})", None
     prior, prior_nominal, prior_basis = mass_prior(data.rig, data.mass_hint)
+    if readings_lead:
+        notes.append(f"mass: not estimated (the pressure readings lead the chambers', see the "
+                     f"transmitters note); {prior_basis}: [{prior[0]:.3g}, {prior[1]:.3g}] kg, "
+                     f"narrowed by the cross-check")
+        return prior_nominal, prior, prior_basis, None
     if isinstance(friction, PriorFriction):
         notes.append(f"mass: not estimated (the friction fit, which its estimates need, could "
                      f"not run); {prior_basis}: [{prior[0]:.3g}, {prior[1]:.3g}] kg, narrowed "

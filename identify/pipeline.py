@@ -67,6 +67,7 @@ from .mass_choice import choose_mass
 from .model_build import build_model, build_plant
 from .motion import FrictionIdentifier, MassIdentifier
 from .sources import Sources, coverage_notes, pool_members, valve_pool
+from .transmitters import check_transmitters
 from .validation import Validation, validate
 from .valves import ValveIdentifier
 
@@ -303,8 +304,14 @@ def identify(logs: LogPaths, holdout: float = 0.2, mass: float | None = None,
     # segments, not faster sampling
     unexcited = [covs[j].experiment for j in range(len(full))
                  if j not in lag_logs and samples_per_pwm(full[j]) >= MIN_SAMPLES_PER_PWM]
+    # transmitters that read upstream of a restriction lead the chambers: no mass estimate
+    tx = check_transmitters(full)
+    tx_note = None if tx is None else tx.note()
+    if tx_note is not None:
+        notes.append(tx_note)
     M, M_range, M_basis, M_est = choose_mass(
         data, friction, fit, mass, mass_tol, seed, notes, unexcited=unexcited,
+        readings_lead=tx_note is not None,
         log=(log if not several else [full[j] for j in lag_logs]) if lag_logs else None,
         log_fit=(log.split(holdout)[0] if not several else
                  [full[j].split(holdout)[0] for j in lag_logs]) if lag_logs else None,
