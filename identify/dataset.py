@@ -622,6 +622,24 @@ JUNCTION_MARGIN = 0.08
 JUNCTION_MARGIN_SAMPLES = 20
 
 
+def true_runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """Start and end (exclusive) of every run of True in ``flags``, in order.
+
+    Parameters
+    ----------
+    flags : ndarray of bool
+        The samples.
+
+    Returns
+    -------
+    list of (int, int)
+        Empty for none.
+    """
+    padded = np.concatenate([[0], np.asarray(flags, dtype=np.int8), [0]])
+    edges = np.flatnonzero(np.diff(padded))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
 def carrier_block(Ts: float, pwm_hz: float, max_samples: int = 2000) -> int:
     """Fewest samples ``Ts`` apart that make a whole number of PWM periods (1 if none does
     within ``max_samples``, to 0.1 % of a period).

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dataset import Dataset
+from .dataset import Dataset, true_runs
 from .mass import MIN_SAMPLES_PER_PWM, samples_per_pwm
 
 #: A chamber's reading is taken for the valves' side of a line when the median |z| of its
@@ -77,12 +77,6 @@ class TransmitterCheck:
                 f"ports, the transmitters read the chambers")
 
 
-def _stretches(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Start and end (exclusive) of every run of True in ``mask``."""
-    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
-    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
-
-
 def _folded_z(t: np.ndarray, p: np.ndarray, period: float, bins: int) -> np.ndarray:
     """z-score of the mean increment of ``p`` in each phase bin of the PWM period."""
     dp = np.diff(p)
@@ -122,16 +116,14 @@ def check_transmitters(logs: Sequence[Dataset]) -> TransmitterCheck | None:
                                           ("vent", 2 * side + 1, 2 * side, 1.0)):
                 u = d.u[:, act]
                 ok = (u > 0.0) & (u < 1.0) & (d.u[:, shut] == 0.0) & still
-                for lo, hi in _stretches(ok):
+                for lo, hi in true_runs(ok):
                     # one duty at a time: its valve closes at one phase of the carrier
-                    for lo2, hi2 in _stretches(np.r_[True, u[lo + 1:hi] == u[lo:hi - 1]]):
+                    for lo2, hi2 in true_runs(np.r_[True, u[lo + 1:hi] == u[lo:hi - 1]]):
                         a, b = lo + lo2, lo + hi2
                         if (b - a) * d.sample_period < MIN_PERIODS * period:
                             continue
                         z = _folded_z(d.t[a:b], p[a:b], period, bins)
-                        zs.setdefault((chamber, kind), []).append(float(sign * z.max())
-                                                                  if sign > 0 else
-                                                                  float(-z.min()))
+                        zs.setdefault((chamber, kind), []).append(float(np.max(sign * z)))
     charge, vent, stretches = {}, {}, {}
     for chamber in ("a", "b"):
         c, v = zs.get((chamber, "charge"), []), zs.get((chamber, "vent"), [])

@@ -18,6 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .dataset import true_runs
+
 #: Scale of the leak conductance's column in the least squares [m^3/(s Pa)] (the unit the
 #: valve fit solves for the leak in).
 LEAK_SCALE = 1e-10
@@ -69,8 +71,7 @@ def closed_stretches(u: np.ndarray, usable: np.ndarray, lookback: int, window: i
         cs = np.concatenate([[0.0], np.cumsum(vol)])
         y = p[: len(cs)] - cs
         leak_rate = sgn * nRT / V * leak_flow  # dp/dt per unit leak conductance
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
-        for a, b in zip(edges[::2], edges[1::2], strict=True):
+        for a, b in true_runs(ok):
             if b - a < w:
                 continue
             tt = np.arange(a, b + 1) * Ts

@@ -50,7 +50,7 @@ from pneutune.control.physics.pwm import effective_open_fraction
 from pneutune.control.sim.model_box import MIN_PULSE_SPAN
 
 from .base import Identifier
-from .dataset import Dataset, IdentificationError
+from .dataset import Dataset, IdentificationError, true_runs
 from .valve_curves import chamber_curves, curve_switching, default_knots, interp_weights
 from .valve_flows import A_IN, A_OUT, B_IN, B_OUT, LEAK, PortFlows
 from .valve_jacobian import grouped_jacobian, valve_fit_groups
@@ -129,9 +129,7 @@ def longest_run(flags: np.ndarray) -> int:
     int
         The most consecutive True samples (0 for none).
     """
-    padded = np.concatenate([[0], np.asarray(flags, dtype=np.int8), [0]])
-    edges = np.flatnonzero(np.diff(padded))
-    return int(np.max(edges[1::2] - edges[0::2])) if edges.size else 0
+    return max((b - a for a, b in true_runs(flags)), default=0)
 
 
 def window_sandwich_sd(J: np.ndarray, r: np.ndarray, JtJ_inv: np.ndarray,

@@ -437,6 +437,16 @@ def port_pressure(p: np.ndarray, s: np.ndarray, side: int, t: float, pc: float, 
 
 
 @njit(cache=True)
+def port_pressures(p: np.ndarray, s: np.ndarray, t: float, pa: float, pb: float, ta: float,
+                   tb: float, p_sup: float) -> tuple[float, float]:
+    """:func:`port_pressure` of both chambers (``ta``/``tb``: their gas temperatures, read only
+    with heat transfer)."""
+    heat = p[P_HEAT] > 0.5
+    return (port_pressure(p, s, 0, t, pa, ta if heat else p[P_T0], p_sup),
+            port_pressure(p, s, 1, t, pb, tb if heat else p[P_T0], p_sup))
+
+
+@njit(cache=True)
 def _lag_sensors(p: np.ndarray, s: np.ndarray, h: float, x0: float, pa0: float, pb0: float,
                  ps0: float, x1: float, pa1: float, pb1: float, ps1: float) -> None:
     """Move the lagged sensor states over a step of ``h`` along the true values."""
@@ -476,11 +486,9 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
     supply = p[P_SUPC] > 0.0
     # transmitters at the valves: the lags follow the junctions' pressures
     at_valves = lag and p[P_PAT] > 0.5
-    heat = p[P_HEAT] > 0.5
     xq, paq, pbq, psq, remq = x, pa, pb, psup if supply else p_s, h_total
     if at_valves:
-        paq = port_pressure(p, s, 0, t0, pa, ta if heat else p[P_T0], psq)
-        pbq = port_pressure(p, s, 1, t0, pb, tb if heat else p[P_T0], psq)
+        paq, pbq = port_pressures(p, s, t0, pa, pb, ta, tb, psq)
     remaining = h_total
     guard = 0
     while remaining > 1.0e-13 and guard < 4 * max_steps + 64:
@@ -489,9 +497,8 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
             ps_now = psup if supply else p_s
             ra, rb = pa, pb
             if at_valves:
-                t_now = t0 + (h_total - remaining)
-                ra = port_pressure(p, s, 0, t_now, pa, ta if heat else p[P_T0], ps_now)
-                rb = port_pressure(p, s, 1, t_now, pb, tb if heat else p[P_T0], ps_now)
+                ra, rb = port_pressures(p, s, t0 + (h_total - remaining), pa, pb, ta, tb,
+                                        ps_now)
             _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, ra, rb, ps_now)
             xq, paq, pbq, psq, remq = x, ra, rb, ps_now, remaining
         t = t0 + (h_total - remaining)
@@ -592,9 +599,7 @@ def _integrate(p: np.ndarray, s: np.ndarray, h_total: float, p_s: float, f_ext: 
         ps_now = psup if supply else p_s
         ra, rb = pa, pb
         if at_valves:
-            t_now = t0 + h_total
-            ra = port_pressure(p, s, 0, t_now, pa, ta if heat else p[P_T0], ps_now)
-            rb = port_pressure(p, s, 1, t_now, pb, tb if heat else p[P_T0], ps_now)
+            ra, rb = port_pressures(p, s, t0 + h_total, pa, pb, ta, tb, ps_now)
         _lag_sensors(p, s, remq - remaining, xq, paq, pbq, psq, x, ra, rb, ps_now)
     s[S_X], s[S_V], s[S_PA], s[S_PB] = x, v, pa, pb
     s[S_TA], s[S_TB], s[S_Z], s[S_PSUP] = ta, tb, z, psup
@@ -781,9 +786,7 @@ def measure(p: np.ndarray, s: np.ndarray, p_s: float, noise: np.ndarray,
         if s[S_PSF] > 0.0:
             ps = s[S_PSF]
     elif p[P_PAT] > 0.5:
-        heat = p[P_HEAT] > 0.5
-        pa = port_pressure(p, s, 0, s[S_T], pa, s[S_TA] if heat else p[P_T0], ps)
-        pb = port_pressure(p, s, 1, s[S_T], pb, s[S_TB] if heat else p[P_T0], ps)
+        pa, pb = port_pressures(p, s, s[S_T], pa, pb, s[S_TA], s[S_TB], ps)
     xm = x + p[P_XNOISE] * noise[0]
     q = p[P_XSTEP]
     if q > 0.0:

@@ -157,6 +157,15 @@ def geometry_warnings(controller: ControllerConfig, rig_meta: dict[str, Any],
     return out
 
 
+def _mismatch_warnings(controller: ControllerConfig, rig_meta: dict[str, Any],
+                       controller_file: str, rig_source: str) -> list[dict[str, Any]]:
+    """:func:`geometry_warnings` as deploy's warning records (``rig_mismatch``, for all
+    scenarios)."""
+    return [{"scenario": "all", "t": 0.0, "level": "warning", "code": "rig_mismatch",
+             "message": m}
+            for m in geometry_warnings(controller, rig_meta, controller_file, rig_source)]
+
+
 def check_reference_in_limits(controller: ControllerConfig, scenario: Scenario,
                               rig_meta: dict[str, Any], controller_file: str) -> None:
     """The scenario's reference must lie within the controller's position limits.
@@ -419,9 +428,7 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
     faults: list[dict[str, Any]] = []
     warnings: list[dict[str, Any]] = []
     if command is None:
-        warnings += [{"scenario": "all", "t": 0.0, "level": "warning", "code": "rig_mismatch",
-                      "message": m}
-                     for m in geometry_warnings(cfg, plant_cfg.rig_metadata(), name, rig_source)]
+        warnings += _mismatch_warnings(cfg, plant_cfg.rig_metadata(), name, rig_source)
     disable = None if progress is None else not progress
     for sc in tqdm(resolved, desc="scenarios", unit="scenario", disable=disable, leave=False):
         the_rig: Rig
@@ -447,10 +454,7 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
         try:
             check_rig_compatible(cfg, the_rig.rig_metadata(), name, f"rig {kind}")
             if command is not None and not runs:  # the driver's rig, as its hello told it
-                warnings += [{"scenario": "all", "t": 0.0, "level": "warning",
-                              "code": "rig_mismatch", "message": m}
-                             for m in geometry_warnings(cfg, the_rig.rig_metadata(), name,
-                                                        f"rig {kind}")]
+                warnings += _mismatch_warnings(cfg, the_rig.rig_metadata(), name, f"rig {kind}")
             check_sampled_at_control_rate(the_rig, kind)
             check_reference_in_limits(cfg, sc, the_rig.rig_metadata(), name)
             res = run_scenario(cfg, sc, the_rig, supervisor=Supervisor(settings),
