@@ -29,13 +29,17 @@ in this process, three ways, each printed as simulated seconds per wall second (
 The three give bit-identical metrics (checked here); only the wall time differs. ``--pwm`` picks
 the truth model's PWM update mode (``immediate``/``latched``) when ``--model truth``.
 
-Pruners (``--pruners``, default ``median,wilcoxon``): the command is run once per pruner
+Pruners (``--pruners``, default ``median,staged``): the command is run once per pruner
 (``tune --pruner``), seed (``--seeds``) and round (``--rounds``), on the same model, hence the
 same plant draws and noise for a seed; within a round the pruners alternate their order (so
 that a change of the machine's load hits both alike). Printed per run, then per pruner the wall
-times (min..max, median, runs) and per seed the best objective of each pruner: ``median`` is the
-pruning every study used before ``--pruner`` (the baseline), ``wilcoxon`` the per-run
-signed-rank test against the best trial (docs/tuning.md, "Pruning").
+times (min..max, median, runs) and per seed the best objective of each pruner: the first pruner
+is the baseline (``median``: the pruning of every study before ``staged``), ``staged`` the
+default (the median after the first scenario, the best quarter after each later one),
+``wilcoxon`` the per-run signed-rank test against the best trial (docs/tuning.md, "Pruning").
+A last line per pruner gives its best objectives against the baseline's on the same models and
+seeds (geometric mean ratio, how many lower and higher, the one-sided signed-rank p that they
+are worse) and its median wall time over the baseline's.
 
 Several models (``--model A.yaml,B.yaml``): each is measured in turn, and a last table gives
 per model the wall times (min..max) and the best objective of every pruner and seed.
@@ -49,7 +53,7 @@ on the same draws and seeds.
 
     .venv/bin/python benchmarks/tune_speed.py [--trials 200] [--workers 1]
         [--model M.yaml[,M2.yaml...]] [--pwm latched] [--throughput-only] [--repeat 5]
-        [--no-throughput] [--pruners median,wilcoxon] [--seeds 1,2,3] [--rounds 1]
+        [--no-throughput] [--pruners median,staged] [--seeds 1,2,3] [--rounds 1]
         [--baseline REV]
 """
 
@@ -68,6 +72,7 @@ from typing import Any
 
 import numba
 import numpy as np
+from scipy.stats import wilcoxon
 
 from pneutune.control.contracts.model import ModelConfig, load_model, save_model
 from pneutune.control.contracts.plant import PlantConfig
@@ -202,6 +207,36 @@ def remove_baseline(tmp: Path) -> None:
                        check=False)
 
 
+def compare_best(best: dict[tuple[str, str, str, int], float],
+                 walls: dict[tuple[str, str, str], list[float]], models: list[str],
+                 codes: list[str], pruners: list[str], seeds: list[int]) -> None:
+    """Print each (code, pruner) against the first one (the baseline) on the same models and
+    seeds: the best objective's ratio (geometric mean, min .. max), how many studies it is lower
+    and higher on, the one-sided Wilcoxon signed-rank p that it is higher (worse), and the
+    median wall time of its runs over the baseline's."""
+    arms = [(c, p) for c in codes for p in pruners]
+    if len(arms) < 2:
+        return
+    base = arms[0]
+    print(f"best objective and wall time against {base[1]} ({base[0]}), same models and seeds "
+          "(ratio < 1: a lower, better objective; p: one-sided signed-rank test that it is "
+          "worse)")
+    for code, pruner in arms[1:]:
+        pairs = [(best[(m, code, pruner, s)], best[(m, *base, s)]) for m in models for s in seeds]
+        ratio = np.array([a / b for a, b in pairs])
+        lower = int(np.sum(ratio < 1.0))
+        higher = int(np.sum(ratio > 1.0))
+        diffs = np.log(ratio)
+        p = (float(wilcoxon(diffs, alternative="greater").pvalue)
+             if np.any(diffs != 0.0) else 1.0)
+        w_new = np.median([w for m in models for w in walls[(m, code, pruner)]])
+        w_base = np.median([w for m in models for w in walls[(m, *base)]])
+        print(f"  {pruner:<9} {code:<8} best x{float(np.exp(diffs.mean())):.3f} "
+              f"({ratio.min():.3f} .. {ratio.max():.3f}) over {len(pairs)} studies: lower on "
+              f"{lower}, higher on {higher}, p(worse) = {p:.3f}; median wall x"
+              f"{w_new / w_base:.3f} ({w_new:.1f} s against {w_base:.1f} s)")
+
+
 def main() -> int:
     """Run the benchmark and print its figures."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -217,9 +252,9 @@ def main() -> int:
                     help="print the closed-loop throughput only, do not run tune")
     ap.add_argument("--no-throughput", action="store_true",
                     help="skip the closed-loop throughput, run tune only")
-    ap.add_argument("--pruners", default="median,wilcoxon",
+    ap.add_argument("--pruners", default="median,staged",
                     help="comma-separated tune --pruner values to compare (default "
-                         "median,wilcoxon; median is the baseline)")
+                         "median,staged; the first is the baseline)")
     ap.add_argument("--seeds", default="1", help="comma-separated seeds (default 1)")
     ap.add_argument("--rounds", type=int, default=1,
                     help="runs per pruner and seed, alternating the pruners (default 1)")
@@ -299,6 +334,7 @@ def main() -> int:
                     b = ", ".join(f"{best[(name, code, pruner, seed)]:.4f}" for seed in seeds)
                     span = f"{min(w):5.1f} .. {max(w):5.1f} ({float(np.median(w)):5.1f}, {len(w)})"
                     print(f"  {name[-48:]:<48} {code:<8} {pruner:<9} {span:<26} {b}")
+        compare_best(best, walls, [name for name, _ in models], list(codes), pruners, seeds)
     finally:
         remove_baseline(tmp)
         shutil.rmtree(tmp, ignore_errors=True)

@@ -20,6 +20,7 @@ from pneutune.control.sim.truth import model_from_plant
 from pneutune.tune import objective as objective_module
 from pneutune.tune import report as report_module
 from pneutune.tune.objective import ObjectiveSettings, TuneObjective, pruning_oracle
+from pneutune.tune.pruners import StagedPercentilePruner
 from pneutune.tune.samplers import tpe
 
 MODEL = model_from_plant(PlantConfig())
@@ -64,28 +65,37 @@ def test_the_bound_is_below_the_scenarios_cvar() -> None:
                 assert bound is not None and bound <= ev.scenario_cvar[sc.name]
 
 
-def _study(monkeypatch: pytest.MonkeyPatch, bound: bool) -> optuna.Study:
+#: The pruners the bound must not change: the median (the ``median`` pruner), and the median then
+#: the best quarter (``staged``), which also reads the trials pruned after the first scenario.
+PRUNERS = {
+    "median": lambda: optuna.pruners.MedianPruner(n_startup_trials=3, n_warmup_steps=0,
+                                                  interval_steps=1),
+    "staged": lambda: StagedPercentilePruner(n_startup_trials=3),
+}
+
+
+def _study(monkeypatch: pytest.MonkeyPatch, bound: bool, pruner: str) -> optuna.Study:
     if not bound:
         monkeypatch.setattr(objective_module, "pruning_oracle", lambda trial: None)
     obj = TuneObjective(MODEL, seed=1, settings=SETTINGS, jobs=1)
-    study = optuna.create_study(sampler=tpe(3), pruner=optuna.pruners.MedianPruner(
-        n_startup_trials=3, n_warmup_steps=0, interval_steps=1))
+    study = optuna.create_study(sampler=tpe(3), pruner=PRUNERS[pruner]())
     study.enqueue_trial(obj.space.paper_params())
     study.optimize(obj, n_trials=30)
     monkeypatch.undo()
     return study
 
 
+@pytest.mark.parametrize("pruner", sorted(PRUNERS))
 def test_the_bound_changes_no_decision_of_the_pruner(monkeypatch: pytest.MonkeyPatch,
-                                                    tmp_path: Path) -> None:
+                                                    tmp_path: Path, pruner: str) -> None:
     """The same seeded study with and without the bound: the same parameters and states on
     every trial, the same value of every complete trial (bit for bit: the same runs), the same
     values reported before a pruned trial's last step, and at that step a value no higher; at
     least one trial stopped on the bound (a lower value there). A trial stopped on the bound, and
     only such a trial, says so in ``user_attrs["pruned_on_bound"]``, with fewer draws run than
     the scenario has: history.png draws its value as a lower bound."""
-    with_bound = _study(monkeypatch, bound=True)
-    without = _study(monkeypatch, bound=False)
+    with_bound = _study(monkeypatch, bound=True, pruner=pruner)
+    without = _study(monkeypatch, bound=False, pruner=pruner)
     lowered = 0
     for a, b in zip(with_bound.trials, without.trials, strict=True):
         assert a.params == b.params
@@ -125,8 +135,9 @@ def test_no_oracle_where_a_pruned_value_could_steer_the_sampler() -> None:
                             (tpe(0), optuna.pruners.NopPruner())):
         study = optuna.create_study(sampler=sampler, pruner=pruner)
         assert pruning_oracle(study.ask()) is None
-    study = optuna.create_study(sampler=tpe(0), pruner=optuna.pruners.MedianPruner())
-    assert pruning_oracle(study.ask()) is not None
+    for pruner in (optuna.pruners.MedianPruner(), StagedPercentilePruner()):
+        study = optuna.create_study(sampler=tpe(0), pruner=pruner)
+        assert pruning_oracle(study.ask()) is not None
     assert pruning_oracle(optuna.trial.FixedTrial({})) is None  # no study behind it
 
 

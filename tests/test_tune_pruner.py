@@ -31,7 +31,13 @@ from pneutune.tune.objective import (
     TuneObjective,
     estimate_from_best,
 )
-from pneutune.tune.pruners import DEFAULT_PRUNER, PRUNERS, make_pruner, study_pruner
+from pneutune.tune.pruners import (
+    DEFAULT_PRUNER,
+    PRUNERS,
+    StagedPercentilePruner,
+    make_pruner,
+    study_pruner,
+)
 
 MODEL = model_from_plant(PlantConfig())
 #: Two short scenarios on eight plants: 16 runs in four chunks of INSTANCE_CHUNK draws.
@@ -123,7 +129,11 @@ def test_a_pruned_trials_estimate_is_the_best_value_scaled_by_its_runs() -> None
 
 
 def test_pruner_names_and_defaults() -> None:
-    assert PRUNERS == ("wilcoxon", "median", "none")
+    assert PRUNERS == ("staged", "wilcoxon", "median", "none")
+    assert DEFAULT_PRUNER == "staged"
+    staged = make_pruner("staged")
+    assert isinstance(staged, StagedPercentilePruner)
+    assert staged.later_percentile == 25.0 and staged.n_startup == 10
     assert isinstance(make_pruner("median"), optuna.pruners.MedianPruner)
     assert isinstance(make_pruner("none"), optuna.pruners.NopPruner)
     assert study_pruner(None, None) == DEFAULT_PRUNER  # a new study
@@ -174,3 +184,60 @@ def test_same_seed_same_trials_with_wilcoxon_pruning(
                                       for t in study.trials]))
     assert results[0] == results[1]
     assert any(s == optuna.trial.TrialState.PRUNED for _, s, _, _ in results[0][1])
+
+
+def _trial(state: optuna.trial.TrialState, values: dict[int, float]) -> optuna.trial.FrozenTrial:
+    done = state == optuna.trial.TrialState.COMPLETE
+    return optuna.trial.create_trial(state=state, value=values[max(values)] if done else None,
+                                     params={}, distributions={}, intermediate_values=values)
+
+
+def _staged_study() -> optuna.Study:
+    """Three complete trials, one pruned after the second step, one after the first."""
+    complete, pruned = optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED
+    study = optuna.create_study()
+    for state, values in ((complete, {0: 1.0, 1: 2.0, 2: 2.0}),
+                          (complete, {0: 2.0, 1: 4.0, 2: 4.0}),
+                          (complete, {0: 1.5, 1: 5.0, 2: 5.0}),
+                          (pruned, {0: 3.0, 1: 9.0}),  # stopped at step 1: past step 0
+                          (pruned, {0: 10.0})):  # stopped at step 0: read at no step
+        study.add_trial(_trial(state, values))
+    return study
+
+
+def test_the_staged_pruner_takes_the_median_then_the_best_quarter() -> None:
+    """Step 0: the median of the trials past step 0, values 1, 2, 1.5, 3: 1.75 (the trial
+    stopped at step 0 is not read). Step 1: the 25th percentile (numpy's linear rule) of 2, 4,
+    5 and +inf for the trial stopped at step 1: 2 + 0.75 (4 - 2) = 3.5. The median pruner
+    there reads the complete trials alone: 4 at step 1; the survivors alone would give the
+    25th percentile of 2, 4, 5: 3.0."""
+    study = _staged_study()
+    pruner = StagedPercentilePruner(n_startup_trials=3)
+    median = optuna.pruners.MedianPruner(n_startup_trials=3)
+    running = optuna.trial.TrialState.RUNNING
+
+    def stops(p: optuna.pruners.BasePruner, values: dict[int, float]) -> bool:
+        return p.prune(study, _trial(running, values))
+
+    assert not stops(pruner, {0: 1.75})
+    assert stops(pruner, {0: 1.76})
+    assert not stops(pruner, {0: 0.5, 1: 3.5})
+    assert stops(pruner, {0: 0.5, 1: 3.51})
+    assert not stops(pruner, {0: 0.5, 1: 3.25})  # the survivors' 3.0 would stop it
+    assert not stops(median, {0: 0.5, 1: 3.75})  # what the median pruner keeps...
+    assert stops(pruner, {0: 0.5, 1: 3.75})  # ...the best quarter stops
+    assert stops(pruner, {0: 0.5, 1: float("nan")})
+    # monotone in the value (the bound of pruning_oracle relies on it)
+    grid = np.linspace(0.0, 10.0, 201)
+    for step in (0, 1):
+        decisions = [stops(pruner, {**{s: 0.5 for s in range(step)}, step: v}) for v in grid]
+        assert decisions == sorted(decisions)
+
+
+def test_the_staged_pruner_waits_for_its_start_up_trials() -> None:
+    """Three complete trials, four needed: nothing is stopped, however bad."""
+    pruner = StagedPercentilePruner(n_startup_trials=4)
+    running = optuna.trial.TrialState.RUNNING
+    assert not pruner.prune(_staged_study(), _trial(running, {0: 1e9}))
+    with pytest.raises(ValueError, match="later_percentile"):
+        StagedPercentilePruner(later_percentile=120.0)

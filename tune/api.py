@@ -97,8 +97,9 @@ class TuneSettings:
         ``tpe`` (default) or ``cmaes`` (TPE, then CMA-ES warm-started from it; needs the
         ``cmaes`` package); :mod:`pneutune.tune.samplers`.
     pruner : str or None
-        ``wilcoxon``, ``median`` or ``none`` (:func:`pneutune.tune.pruners.make_pruner`); None
-        (default): a resumed study's own, ``median`` for a new one.
+        ``staged``, ``wilcoxon``, ``median`` or ``none``
+        (:func:`pneutune.tune.pruners.make_pruner`); None (default): a resumed study's own,
+        ``staged`` for a new one.
     restarts : int
         Independent studies, seeds ``seed`` .. ``seed + restarts - 1``, each of ``trials``
         trials; the controller kept is the one that scores best on selection draws with new
@@ -509,7 +510,7 @@ def _run_arm(model: ModelConfig, model_sha: str, name: str, storage: str,
              notes: Callable[[str], None] | None) -> _Arm:
     """Check feasibility, run (or resume) the study of ``seed`` and apply the held-out guard."""
     try:
-        feas = check_feasibility(model, seed, settings.objective, progress=notes)
+        feas = check_feasibility(model, seed, settings.objective, progress=notes, jobs=jobs)
     except InfeasibleModelError as exc:
         raise ConfigError(name, "", str(exc)) from None
     objective_settings = dataclasses.replace(settings.objective, box=feas.box)

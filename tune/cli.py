@@ -44,10 +44,10 @@ hypercube); per scenario the CVaR of the cost over the draws, averaged over the 
 cost is the tracking error relative to the paper's Table 1 plus penalties for valve chattering,
 chamber pressures outside [p0/2, p_s + 0.5 bar] and end-stop contact. 1.0 means "as good as the
 paper's rig on every scenario". An unstable run prunes its trial, and so does one that is worse
-than earlier trials on the runs done so far (--pruner: median, wilcoxon or none). Before writing,
-the best trials are run on held-out draws (new noise, new hypercube plants) and the first that
-completes every run is kept (the held-out guard; report.md says when it passed over the study's
-best).
+than earlier trials on the runs done so far (--pruner: staged, median, wilcoxon or none). Before
+writing, the best trials are run on held-out draws (new noise, new hypercube plants) and the
+first that completes every run is kept (the held-out guard; report.md says when it passed over
+the study's best).
 docs/tuning.md.
 
 When the model came from a closed-loop log that `deploy --log` wrote, the controller that ran is
@@ -150,9 +150,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                              "plant; docs/notes/2026-11-26-tune-levers.md); try it on a rig "
                              "whose smallest pulse is large (default study name gets -dither)")
     parser.add_argument("--pruner", choices=PRUNERS, default=None,
-                        help="how trials are stopped early: median (default for a new "
-                             "study: the running mean after each scenario against the median "
-                             "of earlier trials), wilcoxon (each run's cost is reported, runs "
+                        help="how trials are stopped early: staged (default for a new "
+                             "study: the running mean after the first scenario against the "
+                             "median of the trials that went past it, after each later "
+                             "scenario against their best quarter), median (the running mean "
+                             "after each scenario against the median of the complete trials; "
+                             "every study made before staged), wilcoxon (each run's cost is "
+                             "reported, runs "
                              "in a per-trial order, and a trial stops once a Wilcoxon "
                              "signed-rank test finds it worse than the best trial on the same "
                              "runs: about twice as fast, but a worse best trial on some seeds; "

@@ -260,7 +260,8 @@ def _culprits(model: ModelConfig, objective: TuneObjective, ctl: ControllerConfi
 
 
 def check_feasibility(model: ModelConfig, seed: int, settings: ObjectiveSettings,
-                      progress: Callable[[str], None] | None = None) -> Feasibility:
+                      progress: Callable[[str], None] | None = None,
+                      jobs: int = 1) -> Feasibility:
     """Make every plant draw trackable by a reference controller (module docstring).
 
     Parameters
@@ -272,6 +273,9 @@ def check_feasibility(model: ModelConfig, seed: int, settings: ObjectiveSettings
         The objective's settings (its ``box`` is the starting box).
     progress : callable, optional
         Called with a line of prose after each step.
+    jobs : int
+        Threads for a scenario's draws (:class:`~pneutune.tune.objective.TuneObjective`; the
+        results do not depend on it).
 
     Returns
     -------
@@ -283,14 +287,14 @@ def check_feasibility(model: ModelConfig, seed: int, settings: ObjectiveSettings
         Not even the nominal plant can be tracked.
     """
     box = settings.box_dict()
-    objective = TuneObjective(model, seed, settings)
+    objective = TuneObjective(model, seed, settings, jobs=jobs)
     label, ref_params, paper_failure = _reference(model, objective, seed)
     ctl = objective.controller(ref_params)
     steps: list[Narrowing] = []
     held: list[str] = []
     for rnd in itertools.count():
         st = dataclasses.replace(settings, box=tuple((k, lo, hi) for k, (lo, hi) in box.items()))
-        objective = TuneObjective(model, seed, st)
+        objective = TuneObjective(model, seed, st, jobs=jobs)
         ev = objective.evaluate(ctl, stop_on_failure=False)
         bad = [(d, _failures(ev, d.index)) for d in objective.draws[1:]]
         bad = [(d, f) for d, f in bad if f]

@@ -147,7 +147,8 @@ def selection_objectives(model: ModelConfig, seed: int, settings: ObjectiveSetti
     for j in range(SELECTION_SEEDS):
         s = seed + SELECTION_SEED_OFFSET + j
         try:
-            st = dataclasses.replace(settings, box=check_feasibility(model, s, settings).box)
+            st = dataclasses.replace(settings, box=check_feasibility(model, s, settings,
+                                                                     jobs=jobs).box)
         except InfeasibleModelError:
             st = settings
         out.append(TuneObjective(model, s, st, jobs=jobs))

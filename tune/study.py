@@ -145,7 +145,8 @@ class StudySpec:
         ``tpe`` (default) or ``cmaes`` (:mod:`pneutune.tune.samplers`; ``gp`` for benchmarks).
         Stored with the study when not ``tpe``: a study is resumed only with its own sampler.
     pruner : str or None
-        ``wilcoxon``, ``median`` or ``none`` (:func:`~pneutune.tune.pruners.make_pruner`);
+        ``staged``, ``wilcoxon``, ``median`` or ``none``
+        (:func:`~pneutune.tune.pruners.make_pruner`);
         None: the study's own (a new study: :data:`~pneutune.tune.pruners.DEFAULT_PRUNER`).
         Stored with the study when not ``median``: a study is resumed only with its own pruner.
     """
