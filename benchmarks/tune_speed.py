@@ -239,7 +239,7 @@ def compare_best(best: dict[tuple[str, str, str, int], float],
 
 def main() -> int:
     """Run the benchmark and print its figures."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--model", help="model.yaml, several separated by commas, or 'truth' "
