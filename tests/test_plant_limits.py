@@ -120,12 +120,13 @@ def _simulate(args: list[str]) -> subprocess.CompletedProcess[str]:
 @pytest.mark.parametrize(("text", "needle"), [
     ("mass: 1.0e-6\n", "mass: a moving mass of 1e-06 kg"),
     ("rig: {Ts: 0.002}\n", "controller-paper.yaml: rig.Ts: must equal the rig's Ts = 0.002 s"),
-    ("rig: {x_min: 0.0, x_max: 1.0e-6}\n", "its reference spans [-17.50, 17.50] mm"),
+    ("rig: {x_min: 0.0, x_max: 1.0e-6}\n",
+     "0.0005 mm either side of mid-stroke within [0.00, 0.00] mm is too short for any scenario"),
 ])
 def test_simulate_refuses_what_deploy_refuses(tmp_path: Path, text: str, needle: str) -> None:
     """``simulate --controller`` on a plant it cannot run, or one the controller is not built
-    for (another Ts; a 1 um stroke that puts the 17.5 mm sine outside the controller's
-    limits): exit 2, one ``error:`` line, as ``deploy`` does."""
+    for (another Ts; a 1 um stroke, too short for even a scaled reference): exit 2, one
+    ``error:`` line, as ``deploy`` does."""
     plant = tmp_path / "plant.yaml"
     plant.write_text(text, encoding="utf-8")
     proc = _simulate(["--scenario", "sine-0.5hz", "--plant", str(plant)])

@@ -389,7 +389,8 @@ def test_same_seed_same_best_trial(tmp_path: Path, capsys: pytest.CaptureFixture
     (["--model", "{bad}", "--trials", "3"], "mass"),
     (["--model", "{massless}", "--trials", "3"], "cannot make a controller.yaml"),
     (["--model", "{short}", "--trials", "3"],
-     "rig.x_max: the stroke [-1.50, 28.50] mm is too short for scenario sine-0.5hz"),
+     "rig.x_max: 1 mm either side of mid-stroke within [-1.50, 0.50] mm is too short for any "
+     "scenario: they need at least 2.86 mm of stroke"),
     (["--model", "{model}", "--trials", "3", "--out", "{model}"],
      "--out names a folder that cannot be written"),
     (["--model", "{model}", "--trials", "3", "--storage", "{tmp}"],
@@ -406,7 +407,9 @@ def test_bad_input_exits_2_with_one_error_line(argv: list[str], needle: str, tmp
     massless = tmp_path / "massless.yaml"
     write_yaml(massless, data)
     data = load_yaml_mapping(model)
-    data["rig"]["x_max"] = 0.0285  # a 30 mm stroke: the 35 mm of the scenarios do not fit
+    # a 2 mm stroke: a scenario scaled to it (0.7 of the 1 mm either side) would span less
+    # than the 1 mm reference the scaling stops at (a 30 mm stroke is tuned: test_short_stroke)
+    data["rig"]["x_max"] = 0.0005
     short = tmp_path / "short.yaml"
     write_yaml(short, data)
     argv = [a.format(tmp=tmp_path, model=model, bad=bad, massless=massless, short=short)

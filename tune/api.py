@@ -46,8 +46,8 @@ from pneutune.control.contracts.controller import (
 )
 from pneutune.control.contracts.model import ModelConfig, load_model
 from pneutune.control.contracts.yamlio import validate_model, write_yaml
-from pneutune.control.errors import ConfigError, argument_error
-from pneutune.control.sim.scenarios import SCENARIOS
+from pneutune.control.errors import ConfigError, ExperimentError, argument_error
+from pneutune.control.sim.scenarios import AMPLITUDE, SCENARIOS, stroke_scale
 
 from .feasibility import Feasibility, InfeasibleModelError, check_feasibility
 from .guard import GuardResult, guarded_best
@@ -391,7 +391,9 @@ def tune(model: Any, settings: TuneSettings | None = None,
     except ConfigError as exc:
         raise ConfigError(name, exc.key, "cannot make a controller.yaml from this model: "
                           f"{exc.message}") from None
-    _check_stroke(model_cfg, paper, settings.objective.scenarios, name)
+    settings, stroke_note = _fit_stroke(model_cfg, paper, settings, name)
+    if stroke_note is not None and notes is not None:
+        notes(stroke_note)
     scratch = None
     if settings.storage:
         storage = settings.storage
@@ -453,7 +455,8 @@ def tune(model: Any, settings: TuneSettings | None = None,
     counts = run.counts_after
     best = guard.trial
     prov = provenance(model_sha, study_name, best.number, float(best.value), seed,
-                      [*feas.notes(), *guard.notes(),
+                      [*([] if stroke_note is None else [stroke_note]), *feas.notes(),
+                       *guard.notes(),
                        *([] if selection is None else selection.notes())])
     tuned = controller_from_params(model_cfg, best.params, prov, dead_zone=dead_zone)
     paper, moved = paper_on_rig(load_controller(PAPER_CONTROLLER), tuned)
@@ -470,6 +473,7 @@ def tune(model: Any, settings: TuneSettings | None = None,
         "model": name, "model_sha256": model_sha, "storage": redact_url(storage),
         "n_trials": settings.trials, "counts": counts,
         "paper_path": paper_path(), "paper_moved": moved, "feasibility": feas.notes(),
+        "stroke": stroke_note,
         "guard": guard.notes(), "guard_moved": guard.passed and bool(guard.rejected),
         "sampler": describe(settings.sampler),
         "behind_paper": behind, "log_check": log_check.lines(),
@@ -483,7 +487,8 @@ def tune(model: Any, settings: TuneSettings | None = None,
             "restarts": None if selection is None else selection.rows(),
             **({} if selection is None else
                {"wall_s_restarts": sum(a.run.wall_s for a in arms)}),
-            "behind_paper": behind, "log_check": log_check.as_dict()}
+            "behind_paper": behind, "log_check": log_check.as_dict(),
+            "amplitude_scale": objective_settings.amplitude_scale}
     result = TuneResult(tuned, study, best, comp, feas, run, {}, info, guard,
                         objective, report_info, scratch)
     if settings.out is None:
@@ -602,34 +607,46 @@ def _save(out: Path, result: TuneResult, objective: TuneObjective,
     return paths
 
 
-def _check_stroke(model_cfg: ModelConfig, controller: ControllerConfig,
-                  scenarios: Sequence[str], name: str) -> None:
-    """Every scenario's reference, centred mid-stroke as ``simulate`` and ``deploy`` run it,
-    lies within the limits of the controllers this model makes (its stroke).
+def _fit_stroke(model_cfg: ModelConfig, controller: ControllerConfig, settings: TuneSettings,
+                name: str) -> tuple[TuneSettings, str | None]:
+    """The settings with every scenario's reference, centred mid-stroke as ``simulate`` and
+    ``deploy`` run it, within the limits of the controllers this model makes (its stroke).
 
-    A controller tuned on a stroke its scenarios overrun scores end-stop penalties, and
-    ``deploy`` then refuses it on the rig it was tuned for.
+    On a stroke too short for Table 1's 17.5 mm the scenarios are scaled to fit
+    (:func:`~pneutune.control.sim.scenarios.stroke_scale`: the paper rig's clearance to the
+    stroke ends in proportion), and Table 1's figures the objective normalises by with them;
+    ``deploy`` and ``simulate`` scale them alike on that stroke. Otherwise a controller tuned
+    on a stroke its scenarios overrun would score end-stop penalties.
+
+    Returns
+    -------
+    settings : TuneSettings
+        As given, or with ``objective.amplitude_scale`` lowered.
+    note : str or None
+        What was scaled (for the report and the controller's provenance); None when nothing.
 
     Raises
     ------
     ConfigError
-        Naming the model's ``rig.x_min``/``rig.x_max``, the scenario, its span and the limits.
+        Naming the model's ``rig.x_max``: a stroke too short for any reference.
     """
-    rig = model_cfg.rig
-    lim = controller.limits
-    for scenario_name in scenarios:
-        sc = SCENARIOS[scenario_name]
-        x_r = sc.reference_array(float(rig.Ts), 0.5 * (rig.x_min + rig.x_max))[:, 0]
-        lo, hi = float(x_r.min()), float(x_r.max())
-        if lo < lim.x_min or hi > lim.x_max:
-            need = (hi - lo) + (rig.x_max - rig.x_min) - (lim.x_max - lim.x_min)
-            raise ConfigError(
-                name, "rig.x_max" if hi > lim.x_max else "rig.x_min",
-                f"the stroke [{rig.x_min * 1e3:.2f}, {rig.x_max * 1e3:.2f}] mm is too short "
-                f"for scenario {sc.name}: its reference spans [{lo * 1e3:.2f}, {hi * 1e3:.2f}] "
-                f"mm about mid-stroke, outside the limits [{lim.x_min * 1e3:.2f}, "
-                f"{lim.x_max * 1e3:.2f}] mm its controllers get; the scenarios need a stroke of "
-                f"at least {need * 1e3:.1f} mm (check the rig block, or tune on a longer axis)")
+    rig, lim, obj = model_cfg.rig, controller.limits, settings.objective
+    scenarios = [SCENARIOS[n].scaled(obj.amplitude_scale) for n in obj.scenarios]
+    try:
+        factor = stroke_scale(scenarios, float(rig.Ts), 0.5 * (rig.x_min + rig.x_max),
+                              lim.x_min, lim.x_max)
+    except ExperimentError as exc:
+        raise ConfigError(name, "rig.x_max", f"{exc} (check the rig block)") from None
+    if factor == 1.0:
+        return settings, None
+    scale = obj.amplitude_scale * factor
+    note = (f"The stroke [{rig.x_min * 1e3:.2f}, {rig.x_max * 1e3:.2f}] mm is too short for "
+            f"Table 1's {AMPLITUDE * 1e3:.1f} mm about mid-stroke: every scenario's reference "
+            f"is scaled by {scale:.3f} to {scale * AMPLITUDE * 1e3:.2f} mm, and Table 1's "
+            "figures the objective is normalised by alike (deploy and simulate scale them the "
+            "same on this stroke)")
+    return dataclasses.replace(settings, objective=dataclasses.replace(
+        obj, amplitude_scale=scale)), note
 
 
 def _check_writable_folder(folder: Path, argument: str) -> None:

@@ -142,6 +142,11 @@ class ObjectiveSettings:
         Narrower ranges of plant coordinates, ``(key, lo, hi)``
         (:func:`pneutune.tune.plants.uncertainty_box`); set by the feasibility check
         (:mod:`pneutune.tune.feasibility`), empty when the model's box is used as it is.
+    amplitude_scale : float
+        Every scenario's reference amplitude, and Table 1's figures it is scored against, as
+        a fraction of the paper's (:meth:`~pneutune.control.sim.scenarios.Scenario.scaled`),
+        in (0, 1]; below 1 only on an axis too short for the paper's 17.5 mm
+        (:func:`~pneutune.control.sim.scenarios.stroke_scale`, set by ``tune``).
     """
 
     scenarios: tuple[str, ...] = DEFAULT_SCENARIOS
@@ -157,6 +162,7 @@ class ObjectiveSettings:
     variant: str = "modified_darc"
     dead_zone: str = "up"
     box: tuple[tuple[str, float, float], ...] = ()
+    amplitude_scale: float = 1.0
 
     def __post_init__(self) -> None:
         for name in self.scenarios:
@@ -178,6 +184,8 @@ class ObjectiveSettings:
         if self.dead_zone not in DEAD_ZONE_MODES:
             raise argument_error(TuneError, "dead_zone", "must be one of "
                                  f"{', '.join(DEAD_ZONE_MODES)}, got {self.dead_zone!r}")
+        if not 0.0 < self.amplitude_scale <= 1.0:
+            raise TuneError(f"0 < amplitude_scale <= 1 must hold, got {self.amplitude_scale}")
         for key, lo, hi in self.box:
             if not lo <= hi:
                 raise TuneError(f"box {key}: lo <= hi must hold, got lo={lo}, hi={hi}")
@@ -187,14 +195,17 @@ class ObjectiveSettings:
         return {key: (lo, hi) for key, lo, hi in self.box}
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain data (JSON-able); ``box`` only when set, ``variant`` and ``dead_zone`` only
-        when not the default (studies made before any of them existed compare equal)."""
+        """Plain data (JSON-able); ``box`` only when set, ``variant``, ``dead_zone`` and
+        ``amplitude_scale`` only when not the default (studies made before any of them existed
+        compare equal)."""
         out = dataclasses.asdict(self)
         out["scenarios"] = list(self.scenarios)
         if self.variant == "modified_darc":
             del out["variant"]
         if self.dead_zone == "up":
             del out["dead_zone"]
+        if self.amplitude_scale == 1.0:
+            del out["amplitude_scale"]
         if self.box:
             out["box"] = [list(b) for b in self.box]
         else:
@@ -235,10 +246,13 @@ def _tail(n: int, alpha: float) -> int:
 
 
 def reference_figures(scenario: Scenario) -> tuple[float, float]:
-    """The (E_p, E_rms) [mm] a scenario's tracking is normalised by (Table 1)."""
+    """The (E_p, E_rms) [mm] a scenario's tracking is normalised by: its Table 1 figures
+    (scaled with a scaled scenario's amplitude), or those of ``sine-0.5hz`` for a scenario
+    without (the disturbance run), scaled alike."""
     if scenario.paper is not None:
         return scenario.paper
-    return SCENARIOS["sine-0.5hz"].paper  # type: ignore[return-value]
+    ep, erms = SCENARIOS["sine-0.5hz"].paper  # type: ignore[misc]
+    return (ep, erms) if scenario.scale == 1.0 else (scenario.scale * ep, scenario.scale * erms)
 
 
 @dataclass(frozen=True)
@@ -464,7 +478,8 @@ class TuneObjective:
         self.space: SearchSpace = search_space(model, self.settings.variant)
         self.draws: tuple[PlantDraw, ...] = draw_plants(model, self.settings.n_draws, self.seed,
                                                         self.settings.box_dict())
-        scen = [SCENARIOS[n] for n in self.settings.scenarios]
+        scen = [SCENARIOS[n].scaled(self.settings.amplitude_scale)
+                for n in self.settings.scenarios]
         if self.settings.duration is not None:
             scen = [dataclasses.replace(s, duration=self.settings.duration) for s in scen]
         self.scenarios: tuple[Scenario, ...] = tuple(scen)

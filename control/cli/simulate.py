@@ -18,8 +18,8 @@ from pneutune.control.logs.recording import plant_meta
 from pneutune.control.logs.writer import ZSTD_LEVELS
 from pneutune.control.plant.params import load_sim_plant
 from pneutune.control.rig.deploy import (
-    check_reference_in_limits,
     check_rig_compatible,
+    fit_reference_to_limits,
     scenario_log_path,
 )
 from pneutune.control.sim.table import format_table
@@ -118,8 +118,9 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
     check_rig_compatible(controller, rig_meta, args.controller,
                          f"plant {args.plant}" if args.plant else "the default plant, the "
                          "paper's rig")
-    for sc in scenarios:
-        check_reference_in_limits(controller, sc, rig_meta, args.controller)
+    scenarios, scaled = fit_reference_to_limits(controller, scenarios, rig_meta, args.controller)
+    if scaled is not None:
+        info(f"warning: reference_scaled: {scaled}")
     args.several = len(scenarios) > 1
     cfg_vec = pack(controller)
     results: dict[str, Any] = {}

@@ -36,11 +36,11 @@ from pneutune.control.law.layout import pack
 from pneutune.control.logs.recording import plant_meta
 from pneutune.control.plant.params import load_sim_plant
 from pneutune.control.sim.closed_loop import scenario_plant
-from pneutune.control.sim.scenarios import Scenario, resolve_scenarios
+from pneutune.control.sim.scenarios import AMPLITUDE, Scenario, fit_to_limits, resolve_scenarios
 
 from .exec_rig import ExecRig, PipeRig, exec_command
 from .protocol import Rig
-from .scenario_run import ScenarioResult, run_scenario, scenario_reference, sim_rig_for
+from .scenario_run import ScenarioResult, run_scenario, sim_rig_for
 from .supervisor import FAIL_SAFE_MODES, Event, Supervisor, SupervisorSettings
 from .wire import RigIOError
 
@@ -166,24 +166,50 @@ def _mismatch_warnings(controller: ControllerConfig, rig_meta: dict[str, Any],
             for m in geometry_warnings(controller, rig_meta, controller_file, rig_source)]
 
 
-def check_reference_in_limits(controller: ControllerConfig, scenario: Scenario,
-                              rig_meta: dict[str, Any], controller_file: str) -> None:
-    """The scenario's reference must lie within the controller's position limits.
+def fit_reference_to_limits(controller: ControllerConfig, scenarios: Sequence[Scenario],
+                            rig_meta: dict[str, Any], controller_file: str
+                            ) -> tuple[list[Scenario], str | None]:
+    """The scenarios as they run on this rig: their references, centred at its mid-stroke,
+    must lie within its stroke and the controller's position limits; on a stroke too short for
+    Table 1's 17.5 mm they are scaled down to fit
+    (:func:`~pneutune.control.sim.scenarios.fit_to_limits`, what ``tune`` does on the same
+    rig).
+
+    Returns
+    -------
+    scenarios : list of Scenario
+        As given, or all scaled by one factor.
+    note : str or None
+        What was scaled, for a warning record; None when nothing was.
 
     Raises
     ------
     ExperimentError
-        Naming the scenario, the span of its reference on this rig and the limits.
+        The rig's mid-stroke is not inside the controller's limits (another rig's controller),
+        or the stroke is too short for any reference.
     """
-    x_r = scenario_reference(scenario, rig_meta)[:, 0]
-    lo, hi = float(x_r.min()), float(x_r.max())
     lim = controller.limits
-    if lo < lim.x_min or hi > lim.x_max:
-        raise ExperimentError(f"scenario {scenario.name}: its reference spans [{lo * 1e3:.2f}, "
-                              f"{hi * 1e3:.2f}] mm on this rig (centred mid-stroke), outside the "
-                              f"limits [{lim.x_min * 1e3:.2f}, {lim.x_max * 1e3:.2f}] mm of "
-                              f"{controller_file}: the rig's stroke is too short for it, or the "
-                              f"controller's limits are another rig's")
+    x_min, x_max = float(rig_meta["x_min"]), float(rig_meta["x_max"])
+    lo, hi = max(lim.x_min, x_min), min(lim.x_max, x_max)
+    where = (f"the rig's stroke [{x_min * 1e3:.2f}, {x_max * 1e3:.2f}] mm and the limits "
+             f"[{lim.x_min * 1e3:.2f}, {lim.x_max * 1e3:.2f}] mm of {controller_file}")
+    try:
+        fitted, factor = fit_to_limits(scenarios, float(rig_meta["Ts"]), 0.5 * (x_min + x_max),
+                                       lo, hi)
+    except ExperimentError as exc:
+        raise ExperimentError(f"{where}: {exc}") from None
+    if factor == 1.0:
+        return fitted, None
+    return fitted, (f"{where} are too short for Table 1's {AMPLITUDE * 1e3:.1f} mm about "
+                    f"mid-stroke: the references are scaled by {factor:.3f} to "
+                    f"{factor * AMPLITUDE * 1e3:.2f} mm, Table 1's figures alike (as tune "
+                    "scores them on this stroke)")
+
+
+def _scaled_warning(scenario: str, note: str) -> dict[str, Any]:
+    """A ``reference_scaled`` warning record (:func:`fit_reference_to_limits`)."""
+    return {"scenario": scenario, "t": 0.0, "level": "warning", "code": "reference_scaled",
+            "message": note}
 
 
 def check_sampled_at_control_rate(rig: Rig, rig_source: str) -> None:
@@ -405,9 +431,9 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
         check_rig_compatible(cfg, plant_cfg.rig_metadata(), name, rig_source)
     resolved = resolve_scenarios(scenarios if isinstance(scenarios, str)
                                  else ",".join(scenarios))
-    if command is None:
-        for sc in resolved:
-            check_reference_in_limits(cfg, sc, plant_cfg.rig_metadata(), name)
+    scaled: str | None = None
+    if command is None:  # a simulated rig's stroke is known: fit the references up front
+        resolved, scaled = fit_reference_to_limits(cfg, resolved, plant_cfg.rig_metadata(), name)
     if seed is not None and seed < 0:
         raise argument_error(ExperimentError, "seed", f"must be >= 0, got {seed}")
     if duration is not None and not (math.isfinite(duration) and duration > 0.0):
@@ -429,6 +455,8 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
     warnings: list[dict[str, Any]] = []
     if command is None:
         warnings += _mismatch_warnings(cfg, plant_cfg.rig_metadata(), name, rig_source)
+        if scaled is not None:
+            warnings.append(_scaled_warning("all", scaled))
     disable = None if progress is None else not progress
     for sc in tqdm(resolved, desc="scenarios", unit="scenario", disable=disable, leave=False):
         the_rig: Rig
@@ -456,7 +484,9 @@ def deploy(controller: ControllerConfig | str | os.PathLike[str], rig: str = "si
             if command is not None and not runs:  # the driver's rig, as its hello told it
                 warnings += _mismatch_warnings(cfg, the_rig.rig_metadata(), name, f"rig {kind}")
             check_sampled_at_control_rate(the_rig, kind)
-            check_reference_in_limits(cfg, sc, the_rig.rig_metadata(), name)
+            (sc,), scaled = fit_reference_to_limits(cfg, [sc], the_rig.rig_metadata(), name)
+            if scaled is not None:  # a driver's rig, as its hello tells it
+                warnings.append(_scaled_warning(sc.name, scaled))
             res = run_scenario(cfg, sc, the_rig, supervisor=Supervisor(settings),
                                realtime=realtime, record_truth=command is None,
                                cfg_vec=cfg_vec, fail_safe=FAIL_SAFE_MODES[fail_safe],
@@ -504,11 +534,11 @@ __all__ = [
     "RIG_KINDS",
     "DeployResult",
     "ScenarioRun",
-    "check_reference_in_limits",
     "check_rig_compatible",
     "check_sampled_at_control_rate",
     "controller_source",
     "deploy",
+    "fit_reference_to_limits",
     "geometry_warnings",
     "parse_rig",
     "scenario_log_path",

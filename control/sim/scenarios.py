@@ -7,11 +7,17 @@ The paper does not give the smooth square's edges: here each edge is a quintic
 ``s(τ) = 10τ³ - 15τ⁴ + 6τ⁵`` of 0.8 s (peak speed 1.875·2A/0.8 = 82 mm/s and peak acceleration
 5.77·2A/0.8² = 0.32 m/s² for A = 17.5 mm, well within the valves' flow), holding each level for
 the remaining 0.2 s of the half period. It starts at the low level, where the piston rests.
+
+On an axis too short for Table 1's 17.5 mm (a stroke under about 35 mm), :func:`fit_to_limits`
+scales every reference about mid-stroke so that it spans :data:`STROKE_SHARE` of the room, and
+Table 1's figures with it (:meth:`Scenario.scaled`); where the references fit, they are the
+paper's, unchanged.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +29,13 @@ AMPLITUDE = 0.0175  #: Table 1 amplitude [m]
 EDGE = 0.8  #: smooth-square edge duration [s]
 #: The paper's indices E_p and E_rms cover this many reference periods at the end of a run.
 METRIC_PERIODS = 3
+#: Share of the room between mid-stroke and the nearer limit that a reference scaled to a short
+#: axis spans: that of Table 1's amplitude on the paper's rig (17.5 of the 25 mm from its
+#: mid-stroke to either stroke end, plant.yaml's default -1.5 and 48.5 mm), so a short axis keeps
+#: the paper's clearance to its stroke ends in proportion.
+STROKE_SHARE = AMPLITUDE / 0.025
+#: The smallest amplitude a reference is scaled to [m]: a shorter stroke is refused.
+MIN_AMPLITUDE = 1.0e-3
 
 
 def metric_window(period: float, Ts: float) -> int:
@@ -108,7 +121,10 @@ class Scenario:
     plant_updates : dict
         Changes to the plant (payload, force steps) deep-merged into plant.yaml.
     paper : (float, float) or None
-        The paper's Table 1 (E_p, E_rms) in mm, measured on the rig.
+        The paper's Table 1 (E_p, E_rms) in mm, measured on the rig; of a scaled scenario,
+        those figures times its ``scale``.
+    scale : float
+        The reference's amplitude against the paper's (:meth:`scaled`); 1 for Table 1's.
     """
 
     name: str
@@ -118,6 +134,7 @@ class Scenario:
     reference: Callable[[np.ndarray, float], np.ndarray]
     plant_updates: dict[str, Any] = field(default_factory=dict)
     paper: tuple[float, float] | None = None
+    scale: float = 1.0
 
     def samples(self, Ts: float) -> int:
         """Number of samples at period ``Ts``."""
@@ -126,6 +143,40 @@ class Scenario:
     def reference_array(self, Ts: float, center: float) -> np.ndarray:
         """The reference at every sample, (N, 3)."""
         return self.reference(np.arange(self.samples(Ts)) * Ts, center)
+
+    def scaled(self, factor: float) -> Scenario:
+        """The same scenario with its reference's excursion from the centre (and so its speed
+        and acceleration) times ``factor``, and Table 1's figures times ``factor`` too.
+
+        Tracking errors grow with the speed and acceleration they follow, so the figures are
+        scaled with the amplitude (an assumption: the paper measured one amplitude). The plant
+        changes (payload, force steps) stay. ``factor`` 1 returns the scenario itself.
+
+        Raises
+        ------
+        ExperimentError
+            ``factor`` not in (0, 1].
+        """
+        if not 0.0 < factor <= 1.0:
+            raise ExperimentError(f"a scenario's scale must be in (0, 1], got {factor}")
+        if factor == 1.0:
+            return self
+        base = self.reference
+
+        def reference(t: np.ndarray, center: float) -> np.ndarray:
+            r = base(t, center)
+            return np.column_stack([center + factor * (r[:, 0] - center), factor * r[:, 1],
+                                    factor * r[:, 2]])
+
+        paper = None if self.paper is None else (factor * self.paper[0], factor * self.paper[1])
+        scale = self.scale * factor
+        return dataclasses.replace(
+            self, reference=reference, paper=paper, scale=scale,
+            description=f"{self.description} (amplitude x{scale:.3f})")
+
+    def excursion(self, Ts: float) -> float:
+        """The reference's largest distance from its centre [m]."""
+        return float(np.max(np.abs(self.reference_array(Ts, 0.0)[:, 0])))
 
 
 def _sine_ref(freq: float) -> Callable[[np.ndarray, float], np.ndarray]:
@@ -154,6 +205,69 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "table1": ("sine-0.5hz", "sine-0.75hz", "sine-0.5hz-heavy", "square-0.5hz"),
     "all": tuple(SCENARIOS),
 }
+
+
+def fits(scenario: Scenario, Ts: float, center: float, x_min: float, x_max: float) -> bool:
+    """Whether the scenario's reference about ``center`` lies within [``x_min``, ``x_max``]."""
+    x_r = scenario.reference_array(Ts, center)[:, 0]
+    return bool(x_r.min() >= x_min and x_r.max() <= x_max)
+
+
+def stroke_scale(scenarios: Sequence[Scenario], Ts: float, center: float, x_min: float,
+                 x_max: float) -> float:
+    """The factor :func:`fit_to_limits` scales the scenarios by: 1 when every reference about
+    ``center`` lies within [``x_min``, ``x_max``], else the one that makes the widest span
+    :data:`STROKE_SHARE` of the room between the centre and the nearer limit.
+
+    Parameters
+    ----------
+    scenarios : sequence of Scenario
+        The scenarios to run, all scaled by the one factor (so their figures stay comparable).
+    Ts : float
+        Sampling period [s].
+    center, x_min, x_max : float
+        Mid-stroke and the position limits [m].
+
+    Returns
+    -------
+    float
+        In (0, 1].
+
+    Raises
+    ------
+    ExperimentError
+        ``center`` not strictly inside the limits, or a stroke so short that the references
+        would span less than :data:`MIN_AMPLITUDE`.
+    """
+    room = min(x_max - center, center - x_min)
+    if not room > 0.0:
+        raise ExperimentError(f"mid-stroke {center * 1e3:.2f} mm is not inside the limits "
+                              f"[{x_min * 1e3:.2f}, {x_max * 1e3:.2f}] mm")
+    if all(fits(sc, Ts, center, x_min, x_max) for sc in scenarios):
+        return 1.0
+    if STROKE_SHARE * room < MIN_AMPLITUDE:
+        raise ExperimentError(
+            f"{room * 1e3:.3g} mm either side of mid-stroke within [{x_min * 1e3:.2f}, "
+            f"{x_max * 1e3:.2f}] mm is too short for any scenario: they need at least "
+            f"{2.0 * MIN_AMPLITUDE / STROKE_SHARE * 1e3:.2f} mm of stroke (a "
+            f"{MIN_AMPLITUDE * 1e3:.0f} mm reference)")
+    widest = max(sc.excursion(Ts) for sc in scenarios)
+    return min(1.0, STROKE_SHARE * room / widest)
+
+
+def fit_to_limits(scenarios: Sequence[Scenario], Ts: float, center: float, x_min: float,
+                  x_max: float) -> tuple[list[Scenario], float]:
+    """The scenarios as they run between these limits: unchanged where every reference fits,
+    else all scaled by :func:`stroke_scale` (:meth:`Scenario.scaled`).
+
+    Returns
+    -------
+    scenarios : list of Scenario
+    factor : float
+        The scale applied, 1 when none.
+    """
+    factor = stroke_scale(scenarios, Ts, center, x_min, x_max)
+    return [sc.scaled(factor) for sc in scenarios], factor
 
 
 def resolve_scenarios(name: str) -> list[Scenario]:
