@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from tune_helpers import load_study, only_study_name, run_tune, write_truth_model
 
 from pneutune.control.contracts.plant import PlantConfig
 from pneutune.control.errors import ExperimentError
@@ -25,8 +26,8 @@ from pneutune.control.sim.scenarios import (
     fit_to_limits,
     stroke_scale,
 )
+from pneutune.control.sim.table import format_table
 from pneutune.tune.objective import ObjectiveSettings, reference_figures
-from tune_helpers import only_study_name, load_study, run_tune, write_truth_model
 
 DEPLOY = str(Path(sys.executable).with_name("deploy"))
 TS = 0.004
@@ -124,3 +125,14 @@ def test_a_30mm_axis_is_tuned_and_deployed_on_scaled_references(tmp_path: Path) 
     scaled = [w for w in dep["warnings"] if w["code"] == "reference_scaled"]
     assert len(scaled) == 1 and "scaled by 0.600 to 10.50 mm" in scaled[0]["message"]
     assert all(r["status"] == "ok" for r in dep["scenarios"].values()), dep["scenarios"]
+
+
+def test_the_table_says_when_table1_is_scaled() -> None:
+    """The footnote of the metrics table names the factor only when there is one."""
+    m = {"E_p_mm": 0.2, "E_rms_mm": 0.1, "switches_per_s": 10.0, "p_a_max_Pa": 4.5e5,
+         "p_b_max_Pa": 4.6e5, "status": "ok", "theta_in_bounds": True}
+    rows = [("sine-0.5hz", m, (0.6 * 0.42, 0.6 * 0.19))]
+    assert "times" not in format_table(rows, "t")
+    text = format_table(rows, "t", SHORT_SCALE)
+    assert "0.25        0.11" in text
+    assert "measured on their rig, times 0.600 with the references scaled" in text

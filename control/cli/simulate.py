@@ -137,7 +137,8 @@ def _closed_loop(args: Any, plant_cfg: PlantConfig, seed: int) -> int:
                     "variant": controller.variant, "law": args.law})
     else:
         info(format_table(rows, f"{args.controller} ({controller.variant}), seed {seed}"
-                                + ("" if args.law == "installed" else f", law {args.law}")))
+                                + ("" if args.law == "installed" else f", law {args.law}"),
+                          scenarios[0].scale))
         for _name, m in results.items():
             if "log" in m:
                 info(f"wrote {m['log']}")

@@ -336,8 +336,10 @@ class DeployResult:
         from pneutune.control.sim.table import format_table
 
         rows = [(r.name, r.metrics, r.result.scenario.paper) for r in self.runs]
+        scale = self.runs[0].result.scenario.scale if self.runs else 1.0
         return format_table(rows, f"deploy {self.controller} "
-                            f"({self.config.variant}) on rig {self.rig}, seed {self.seed}")
+                            f"({self.config.variant}) on rig {self.rig}, seed {self.seed}",
+                            scale)
 
 
 def controller_source(controller: ControllerConfig | str | os.PathLike[str]

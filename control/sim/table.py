@@ -10,8 +10,10 @@ from typing import Any
 
 
 def format_table(rows: list[tuple[str, dict[str, Any], tuple[float, float] | None]],
-                 title: str) -> str:
-    """A text table of the metrics beside the paper's Table 1 (rig) figures."""
+                 title: str, scale: float = 1.0) -> str:
+    """A text table of the metrics beside the paper's Table 1 (rig) figures; ``scale`` is the
+    references' amplitude against the paper's when they were scaled to a short stroke (the
+    figures in ``rows`` are then Table 1's times it, and the footnote says so)."""
     head = (f"{'scenario':<19}{'E_p [mm]':>9}{'E_rms [mm]':>11}{'paper E_p':>10}"
             f"{'paper E_rms':>12}{'switch/s':>9}{'p_a max':>9}{'p_b max':>9}  status")
     lines = [title, head, "-" * len(head)]
@@ -22,8 +24,10 @@ def format_table(rows: list[tuple[str, dict[str, Any], tuple[float, float] | Non
                      f"{m['switches_per_s']:>9.1f}{m['p_a_max_Pa'] / 1e5:>8.2f}b"
                      f"{m['p_b_max_Pa'] / 1e5:>8.2f}b  {m['status']}"
                      f"{'' if m['theta_in_bounds'] else ' (theta out of bounds!)'}")
-    lines.append("paper: Table 1 of Qian et al. (2014), measured on their rig; the rest is "
-                 "this simulation.")
+    scaled = "" if scale == 1.0 else (f", times {scale:.3f} with the references scaled to a "
+                                      "short stroke")
+    lines.append(f"paper: Table 1 of Qian et al. (2014), measured on their rig{scaled}; the "
+                 "rest is this simulation.")
     return "\n".join(lines)
 
 
