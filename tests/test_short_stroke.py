@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from rig_helpers import PAPER_YAML
 from tune_helpers import load_study, only_study_name, run_tune, write_truth_model
 
 from pneutune.control.contracts.plant import PlantConfig
@@ -136,3 +137,22 @@ def test_the_table_says_when_table1_is_scaled() -> None:
     text = format_table(rows, "t", SHORT_SCALE)
     assert "0.25        0.11" in text
     assert "measured on their rig, times 0.600 with the references scaled" in text
+
+
+def test_a_driver_told_only_the_name_starts_where_deploy_scales_to(tmp_path: Path) -> None:
+    """The smooth square starts at its low level: 17.5 mm below mid-stroke unscaled, outside a
+    30 mm stroke (-4 mm against -1.5 mm). The pipe driver, which gets only the scenario's
+    name, puts the piston at the scaled start (13.5 - 10.5 = 3 mm), so the paper's controller
+    (limits [-1.5, 48.5] mm, narrowed to the rig's stroke) runs it without a position fault."""
+    plant = PlantConfig().model_dump(by_alias=True, mode="json")
+    plant["rig"]["x_max"] = X_MAX
+    plant_path = tmp_path / "plant.yaml"
+    plant_path.write_text(yaml.safe_dump(plant), encoding="utf-8")
+    proc = subprocess.run([DEPLOY, str(PAPER_YAML), "--rig", f"pipe-sim:{plant_path}",
+                           "--scenario", "square-0.5hz", "--duration", "1", "--json"],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    dep = json.loads(proc.stdout)
+    assert dep["faults"] == []
+    assert [w["code"] for w in dep["warnings"]].count("reference_scaled") == 1
+    assert dep["scenarios"]["square-0.5hz"]["status"] == "ok"

@@ -42,7 +42,7 @@ from pneutune.control.sim.closed_loop import (
     compute_metrics,
     scenario_plant,
 )
-from pneutune.control.sim.scenarios import Scenario
+from pneutune.control.sim.scenarios import Scenario, fit_to_limits
 
 #: Status of a run that a supervisor fault stopped (Metrics.status).
 STATUS_FAULT = "fault"
@@ -240,8 +240,11 @@ def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
 
     The plant gets the scenario's changes
     (:func:`~pneutune.control.sim.closed_loop.scenario_plant`);
-    the piston rests at x_r(0) with the chamber pressures in force balance; the noise seed is
-    ``seed`` or the plant's ``sim.seed``.
+    the piston rests at x_r(0) with the chamber pressures in force balance, of the reference
+    as it runs on this stroke (scaled to it where Table 1's does not fit,
+    :func:`~pneutune.control.sim.scenarios.fit_to_limits`: a driver told only the scenario's
+    name starts where ``deploy`` scales it to); the noise seed is ``seed`` or the plant's
+    ``sim.seed``.
 
     Parameters
     ----------
@@ -264,7 +267,11 @@ def sim_rig_for(scenario: Scenario, plant_cfg: PlantConfig | None = None,
     base = plant_cfg if plant_cfg is not None else PlantConfig()
     pcfg = scenario_plant(base, scenario)
     seed_used = pcfg.sim.seed if seed is None else int(seed)
-    ref0 = scenario_reference(scenario, pcfg.rig_metadata())[0, 0]
+    meta = pcfg.rig_metadata()
+    x_min, x_max = float(meta["x_min"]), float(meta["x_max"])
+    (fitted,), _ = fit_to_limits([scenario], float(meta["Ts"]), 0.5 * (x_min + x_max), x_min,
+                                 x_max)
+    ref0 = scenario_reference(fitted, meta)[0, 0]
     rig = rig_class(pcfg, x0=float(ref0), seed=seed_used, **rig_kwargs)
     return rig, pcfg, seed_used
 
