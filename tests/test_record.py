@@ -285,14 +285,25 @@ def test_deploy_refuses_a_driver_sampling_faster_than_rig_ts(tmp_path):
                      "--duration", "0.1", "--log", str(tmp_path / "d.mcap")])
 
 
-def test_deploy_refuses_a_scenario_outside_the_limits(tmp_path):
-    """A 20 mm stroke cannot hold the paper's ±17.5 mm sine: bad input naming the span and the
-    limits, before anything runs (it used to run, hit both stops and report E_p 7.5 mm)."""
+def test_deploy_scales_a_scenario_to_a_short_stroke_and_refuses_a_tiny_one(tmp_path, capsys):
+    """A 20 mm stroke cannot hold the paper's ±17.5 mm sine: it runs scaled to 0.7 of the
+    10 mm either side of mid-stroke (7 mm, a factor 0.4), with a warning, inside the stroke
+    (unscaled it used to hit both stops and report E_p 7.5 mm). A 2 mm stroke is bad input
+    before anything runs."""
     short = tmp_path / "short.yaml"
     short.write_text("schema: pneutune.plant/1\nrig: {x_min: 0.0, x_max: 0.02}\n")
-    with pytest.raises(PneutuneError, match=r"spans \[-7.50, 27.50\] mm on this rig"):
-        deploy_main([str(PAPER_YAML), "--rig", f"sim:{short}", "--log", str(tmp_path / "d.mcap")])
-    assert not (tmp_path / "d.mcap").exists()
+    assert deploy_main([str(PAPER_YAML), "--rig", f"sim:{short}", "--json",
+                        "--log", str(tmp_path / "d.mcap")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    scaled = [w for w in out["warnings"] if w["code"] == "reference_scaled"]
+    assert len(scaled) == 1 and "scaled by 0.400 to 7.00 mm" in scaled[0]["message"]
+    m = out["scenarios"]["sine-0.5hz"]
+    assert m["status"] == "ok" and m["E_p_mm"] < 1.0, m
+    tiny = tmp_path / "tiny.yaml"
+    tiny.write_text("schema: pneutune.plant/1\nrig: {x_min: 0.0, x_max: 0.002}\n")
+    with pytest.raises(PneutuneError, match="too short for any scenario"):
+        deploy_main([str(PAPER_YAML), "--rig", f"sim:{tiny}", "--log", str(tmp_path / "t.mcap")])
+    assert not (tmp_path / "t.mcap").exists()
 
 
 def test_a_selection_inside_a_group_gets_its_lead_in():
