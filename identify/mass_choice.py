@@ -100,9 +100,28 @@ def _far_above(lo: float, prior: tuple[float, float], b_v: float) -> str:
             f"the sensors than a payload: pressure readings that lead the chambers' pressures "
             f"(transmitters at the valves' side of a line or fitting, which read its pressure "
             f"drop) or a position sensor lagging the transmitters add {b_v * 1e-3:.2g} kg per "
-            f"ms of lag; tune then works on that effective mass, which is what the controller "
-            f"sees through these sensors. If the axis carries no such payload, check where the "
-            f"transmitters are plumbed, or give --mass KG")
+            f"ms of lag; tune then works on that effective mass, and on simulated rigs with such "
+            f"lags controllers tuned on it tracked worse than ones tuned on the geometry prior. "
+            f"If the axis carries no such payload, check where the transmitters are plumbed, or "
+            f"give --mass KG")
+
+
+def _above(M: float, lo: float, prior: tuple[float, float], b_v: float) -> str:
+    """What a lag estimate's note adds when it lies above the prior's upper end (and not so
+    far above that :func:`_far_above` speaks): how much sensor skew would explain it.
+
+    The lag estimate is the mass plus b_v times how much the position sensor lags the
+    pressure transmitters, and the log cannot tell the two apart (docs/identification.md,
+    "Sensor lags move it"). The model keeps the estimate, since a payload the geometry does not
+    know gives the same figure; the note gives the user what decides it.
+    """
+    if not M > prior[1] or lo > FAR_ABOVE_PRIOR * prior[1]:
+        return ""
+    return (f". It is above the prior's upper end ({prior[1]:.3g} kg, four times the piston "
+            f"and rod): if the axis carries no payload that heavy, a position sensor lagging "
+            f"the transmitters by {(M - prior[1]) / b_v * 1e3:.2g} ms or more explains it, and "
+            f"on simulated rigs with such lags controllers tuned on the prior tracked better "
+            f"than ones tuned on the skewed mass: give --mass KG where the mass is known")
 
 
 def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit: np.ndarray,
@@ -185,6 +204,7 @@ def choose_mass(data: Dataset, friction: FrictionIdentifier | PriorFriction, fit
                 f"position sensor lags more than the pressure transmitters adds "
                 f"{friction.b_v_ * 1e-3:.2g} kg (b_v times the lag), each ms less takes it "
                 f"off; where the sensors' datasheets say they differ, give --mass KG"
+                + _above(lag.M_, lag.ci_[0], prior, friction.b_v_)
                 + _far_above(lag.ci_[0], prior, friction.b_v_))
             return lag.M_, lag.ci_, (
                 f"99 % bootstrap interval of tau b_v, tau the lag of the motion behind the "

@@ -231,6 +231,44 @@ def test_a_wide_mass_interval_that_rules_the_prior_out_is_taken(monkeypatch):
             assert any(n.startswith("mass: not identifiable") for n in notes)
 
 
+def test_a_lag_mass_above_the_prior_is_kept_and_its_note_sizes_the_skew(monkeypatch):
+    """A lag estimate above the prior's upper end (3.63 kg for the paper's geometry) stays the
+    model's mass (a payload gives the same figure), and its note says how much position-sensor
+    lag would explain it: (7.43 - 3.63) kg / 4640 N s/m = 0.82 ms (fleet seed 0's plant 7:
+    7.43 kg estimated, 1.98 kg true, its position sensor 1.10 ms behind). One inside the prior
+    gets no such sentence; one over five times the prior gets the far-above one instead."""
+    from types import SimpleNamespace
+
+    from pneutune.identify import mass_choice
+
+    class Fake:
+        def __init__(self, *a, **k):
+            pass
+
+        def fit(self, *a, **k):
+            self.M_, self.ci_, self.discretisation_ = M, (0.95 * M, 1.05 * M), 0.0
+            return self
+
+    monkeypatch.setattr(mass_choice, "LagMassIdentifier", Fake)
+    monkeypatch.setattr(mass_choice, "samples_per_pwm", lambda d: 33.0)
+    data = SimpleNamespace(Ts=0.004, rig=PlantConfig().rig, mass_hint=None)
+    log = mass_choice.Dataset.__new__(mass_choice.Dataset)  # a 0.5 ms log, fields as needed
+    object.__setattr__(log, "sample_period", 0.0005)
+    object.__setattr__(log, "rig", PlantConfig().rig)
+    friction = SimpleNamespace(b_v_=4640.0)
+    for M, skew in ((7.43, "0.82 ms"), (1.2, None), (30.0, None)):
+        notes: list[str] = []
+        got, rng, basis, _ = mass_choice.choose_mass(data, friction, None, None, 0.05, 0, notes,
+                                                     log=log, log_fit=np.ones(1, dtype=bool))
+        assert basis.startswith("99 % bootstrap interval of tau b_v")
+        assert got == M and rng == pytest.approx((0.95 * M, 1.05 * M))
+        note = next(n for n in notes if n.startswith(f"mass: {M:.3g} kg from the lag"))
+        assert ("above the prior's upper end (3.63 kg" in note) is (skew is not None)
+        if skew is not None:
+            assert f"lagging the transmitters by {skew} or more" in note
+        assert ("check where the transmitters are plumbed" in note) is (M == 30.0)
+
+
 def test_joint_friction_fit_without_fast_samples():
     """With the fast samples of one direction masked out (v < -20 mm/s) the two-stage fit
     cannot separate F_n from F_C: the joint Stribeck fit is used, and on data/run.mcap it lands
