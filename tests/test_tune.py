@@ -120,6 +120,32 @@ def test_space_is_log_scaled_around_the_paper_values() -> None:
         assert p.high / p.low >= 10.0, p  # at least a decade
 
 
+def test_motion_filter_range_reaches_20_rad_per_s() -> None:
+    """The motion filter's Q/R spans 1e3-1e11 s^-4 over the model's R: estimator poles of about
+    20 rad/s at the low end, 112 at the paper's 3.1e7, 430 at the top (steady-state gain at
+    4 ms, computed here; docs/tuning.md)."""
+    space = search_space(MODEL)
+    q = next(p for p in space.params if p.name == "kalman.motion.Q")
+    assert (q.low / space.R_motion, q.high / space.R_motion) == pytest.approx((1e3, 1e11))
+    A, W, H = motion_model(0.004)
+    for q_over_r, pole in ((1e3, 19.9), (3.1e7, 111.7), (1e11, 425.0)):
+        K = steady_state_gain(A, process_cov(W, q_over_r), H, 1.0)
+        z = np.linalg.eigvals((np.eye(3) - np.outer(K, H)) @ A)
+        assert np.min(np.abs(np.log(z.astype(complex)))) / 0.004 == pytest.approx(pole, abs=0.5)
+
+
+def test_at_ends_names_parameters_near_a_range_end() -> None:
+    """5 % of the log span from an end is 'at' it; the paper's values are inside every range."""
+    space = search_space(MODEL)
+    assert space.at_ends(space.paper_params()) == []
+    k1 = next(p for p in space.params if p.name == "gains.k1")  # 10-400 1/s
+    span = math.log(k1.high / k1.low)
+    near_low = k1.low * math.exp(0.049 * span)
+    assert space.at_ends({"gains.k1": near_low}) == [("gains.k1", "low")]
+    assert space.at_ends({"gains.k1": k1.low * math.exp(0.051 * span)}) == []
+    assert space.at_ends({"gains.k1": k1.high}) == [("gains.k1", "high")]
+
+
 def test_theta_0_of_b_v_moves_the_start_and_keeps_the_true_b_v_in_the_box() -> None:
     """θ̂3(0) searched: θ_0 of b_v is the trial's value, θ_max moves up in proportion, θ_min and
     every other θ stay the model's (Eq. 9 needs the true θ in the box)."""

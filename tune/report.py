@@ -27,7 +27,7 @@ from pneutune.control.sim.closed_loop import FULL_OPEN_SUSTAIN
 from pneutune.control.sim.table import format_table
 
 from .objective import FAIL_VALUE, Evaluation, TuneObjective
-from .space import params_from_controller
+from .space import RANGE_END_SHARE, params_from_controller
 
 #: The held-out plants and noise are drawn with ``seed + HELDOUT_SEED_OFFSET`` (:func:`compare`).
 HELDOUT_SEED_OFFSET = 1_000_003
@@ -467,6 +467,12 @@ def render(objective: TuneObjective, study: optuna.Study, best: FrozenTrial,
         imp_s = f"{imp[p.name]:.3f}" if imp and p.name in imp else "-"
         out.append(f"| {p.name} | {p.unit} | [{p.low:.3g}, {p.high:.3g}]{' log' if p.log else ''}"
                    f" | {pp.get(p.name, p.paper):.4g} | {tp[p.name]:.4g} | {imp_s} |")
+    ends = objective.space.at_ends(tp)
+    if ends:
+        out += ["", "**At a range end:** " + ", ".join(f"{n} ({e})" for n, e in ends)
+                + f" (within {RANGE_END_SHARE:.0%} of the range's span). The search may have "
+                "wanted a value beyond it, which more trials will not reach: the ranges are "
+                "fixed (docs/tuning.md, \"The search space\", says why each is where it is)."]
     out += ["",
             f"Fixed: eps2 = {tuned.gains.eps2:g}, eps3 = {tuned.gains.eps3:g}, "
             f"r2 = {tuned.gains.r2:g}, motion R = {tuned.kalman.motion.R:.3g} m², "

@@ -29,13 +29,15 @@ controller.yaml key path; docs/tuning.md):
   covariance is proportional to R too), so searching R as well would be a redundant dimension.
   The motion filter's R is the position-sensor variance of the model (``sensors.x_noise²``, the
   paper's 1e-10 m² when the model has none); the force filter's R is the paper's 1e-4 N².
+  The motion filter's Q/R reaches 4.5 decades below the paper's (:data:`MOTION_Q_OVER_R`),
+  poles down to 20 rad/s: with the lower end at 1e5 (43 rad/s) the best trials sat on it.
 
-Every range but θ̂3(0)'s spans one to three decades around the paper's value; all are sampled
-on a log scale. Not searched: θ_min, θ_max and θ_0 other than θ3's (from model.yaml), the rate
-limits θ̇_M and ``min_ref_speed`` (the paper's Sec. 5.1/5.3 values), ``position_feedback``
-(``measured``, docs/controller.md), ``dead_zone`` (``up`` unless ``tune --dead-zone dither``:
-fixed for a study, not searched, because dithering measured worse on four of five fleet
-plants, docs/notes/2026-11-26-tune-levers.md).
+Every other range but θ̂3(0)'s spans one to three decades around the paper's value; all are
+sampled on a log scale. Not searched: θ_min, θ_max and θ_0 other than θ3's (from model.yaml),
+the rate limits θ̇_M and ``min_ref_speed`` (the paper's Sec. 5.1/5.3 values),
+``position_feedback`` (``measured``, docs/controller.md), ``dead_zone`` (``up`` unless ``tune
+--dead-zone dither``: fixed for a study, not searched, because dithering measured worse on four
+of five fleet plants, docs/notes/2026-11-26-tune-levers.md).
 """
 
 from __future__ import annotations
@@ -64,12 +66,17 @@ PAPER_MOTION_R: float = 1.0e-10
 PAPER_FORCE_R: float = 1.0e-4
 #: The paper's Q/R of both filters (3100 / 1e-4) [1/s^4].
 PAPER_Q_OVER_R: float = 3.1e7
+#: The motion filter's Q/R is searched over this range [1/s^4] (estimator poles about 20-430
+#: rad/s; the paper's 3.1e7 gives about 112).
+MOTION_Q_OVER_R: tuple[float, float] = (1.0e3, 1.0e11)
 #: Index of the viscous coefficient b_v in θ.
 THETA_B_V: int = THETA_NAMES.index("b_v")
 #: The searched parameter θ̂3(0) (``adaptation.theta_0`` of b_v).
 THETA_0_PARAM: str = "adaptation.theta_0.b_v"
 #: θ̂3(0) is searched from the model's nominal θ3 up to this factor times it [-].
 THETA_0_B_V_SPAN: float = 4.0
+#: A kept parameter this share of its range's span from an end is reported as at that end.
+RANGE_END_SHARE: float = 0.05
 #: Headroom of the supervisor's pressure limit over the supply [Pa].
 P_MAX_MARGIN: float = 0.5e5
 #: Longest sensor silence the runtime tolerates (5 samples of 4 ms) [s].
@@ -178,6 +185,27 @@ class SearchSpace:
         """Plain data identifying the space (stored with a study, checked on resume)."""
         return [[p.name, p.low, p.high, p.log] for p in self.params]
 
+    def at_ends(self, params: Mapping[str, float],
+                share: float = RANGE_END_SHARE) -> list[tuple[str, str]]:
+        """The parameters of ``params`` within ``share`` of their range's span (on the
+        parameter's scale, log or linear) from one of its ends: ``(name, "low" | "high")``.
+
+        A kept trial with a parameter there may have wanted a value outside the range: report.md
+        says so, and on the fleet's studies it was how too narrow a range showed (the motion
+        filter's Q, :data:`MOTION_Q_OVER_R`).
+        """
+        out = []
+        for p in self.params:
+            if p.name not in params:
+                continue
+            f = math.log if p.log else float
+            pos = (f(params[p.name]) - f(p.low)) / (f(p.high) - f(p.low))
+            if pos <= share:
+                out.append((p.name, "low"))
+            elif pos >= 1.0 - share:
+                out.append((p.name, "high"))
+        return out
+
 
 #: Variants ``tune`` can search: the paper's modified DARC, and the PID baseline (on the same
 #: valve logic and PWM inverse) so that the comparison with DARC is made on equal terms.
@@ -204,8 +232,10 @@ def search_space(model: ModelConfig, variant: str = "modified_darc") -> SearchSp
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     r_m = motion_R(model)
     r_f = PAPER_FORCE_R
-    # Q/R of the motion filter over 1e5..1e11 1/s^4: bandwidth ~ (Q/R)^(1/6), a factor 10.
-    motion_q = ParamSpec("kalman.motion.Q", 1.0e5 * r_m, 1.0e11 * r_m, True, "m^2/s^4",
+    # Q/R of the motion filter over 1e3..1e11 1/s^4: bandwidth ~ (Q/R)^(1/6), 20..430 rad/s
+    # (down to 1e3 since the best trials of the fleet's studies sat at 1e5, docs/tuning.md)
+    q_lo, q_hi = MOTION_Q_OVER_R
+    motion_q = ParamSpec("kalman.motion.Q", q_lo * r_m, q_hi * r_m, True, "m^2/s^4",
                          PAPER_Q_OVER_R * r_m)
     if variant == "pid":
         pid = PidConfig()
@@ -392,6 +422,6 @@ def params_from_controller(cfg: ControllerConfig) -> dict[str, float]:
     return out
 
 
-__all__ = ["VARIANTS", "ParamSpec", "SearchSpace", "controller_dict", "controller_from_params",
-           "motion_R", "params_from_controller", "search_space", "searches_theta_0",
-           "variant_of"]
+__all__ = ["MOTION_Q_OVER_R", "RANGE_END_SHARE", "VARIANTS", "ParamSpec", "SearchSpace",
+           "controller_dict", "controller_from_params", "motion_R", "params_from_controller",
+           "search_space", "searches_theta_0", "variant_of"]
