@@ -213,3 +213,38 @@ def test_restarts_rank_by_failed_runs_then_score_on_common_runs() -> None:
     sel = pick(4, 3)
     assert [r["score"] for r in sel.rows()] == pytest.approx([0.4, 0.3], rel=1e-12)
     assert sel.kept == 1
+
+
+def test_outputs_are_written_under_the_folder_lock(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two runs on one --out never interleave their files: report.md and the plots are written
+    while the run holds the folder's lock (another process's non-blocking flock is refused),
+    right after controller.yaml, and the lock is free again afterwards."""
+    import fcntl
+    import os
+
+    from pneutune.tune import api
+    from pneutune.tune.storage import OUT_LOCK
+
+    def held() -> bool:
+        fd = os.open(tmp_path / OUT_LOCK, os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)  # closing drops a lock this fd took
+        return False
+
+    seen: list[bool] = []
+    real = api.write_report
+
+    def spy(out, *args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(held() and (Path(out) / "controller.yaml").is_file())
+        return real(out, *args, **kwargs)
+
+    monkeypatch.setattr(api, "write_report", spy)
+    tune(model_from_plant(PlantConfig()),
+         TuneSettings(trials=2, out=tmp_path, jobs=1, objective=QUICK))
+    assert seen == [True]
+    assert not held()

@@ -58,7 +58,7 @@ from .report import Comparison, compare, write_report
 from .restarts import Candidate, select, selection_objectives
 from .samplers import DEFAULT_SAMPLER, check_sampler, describe
 from .space import THETA_0_PARAM, controller_from_params, search_space
-from .storage import DEFAULT_JOURNAL, is_url, redact_url, storage_scheme
+from .storage import DEFAULT_JOURNAL, is_url, out_lock, redact_url, storage_scheme
 from .study import RunSummary, StudySpec, default_study_name, finished, run_study
 
 #: Where ``tune`` writes by default.
@@ -596,14 +596,17 @@ def _save(out: Path, result: TuneResult, objective: TuneObjective,
           report: dict[str, Any]) -> dict[str, str]:
     """controller.yaml and the nominal and worst plants (atomically), then report.md; their
     paths. An earlier report.md goes first: a run killed between the files leaves a new
-    controller without a report (run the command again), never beside another trial's."""
-    (out / "report.md").unlink(missing_ok=True)
-    paths = _write(out, report["model"], report["model_sha256"], report["study"], result.best,
-                   result.controller, objective, result.comparison, report["seed"])
-    facts = {k: v for k, v in report.items() if k not in ("study", "seed", "paper")}
-    paths["report"] = str(write_report(out, objective, result.study, result.best,
-                                       result.controller, report["paper"], result.comparison,
-                                       {**facts, **paths}))
+    controller without a report (run the command again), never beside another trial's. Another
+    ``tune`` writing to the same folder waits (:func:`~pneutune.tune.storage.out_lock`)."""
+    with out_lock(out):
+        (out / "report.md").unlink(missing_ok=True)
+        paths = _write(out, report["model"], report["model_sha256"], report["study"],
+                       result.best, result.controller, objective, result.comparison,
+                       report["seed"])
+        facts = {k: v for k, v in report.items() if k not in ("study", "seed", "paper")}
+        paths["report"] = str(write_report(out, objective, result.study, result.best,
+                                           result.controller, report["paper"],
+                                           result.comparison, {**facts, **paths}))
     return paths
 
 

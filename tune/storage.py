@@ -241,6 +241,28 @@ def local_lock(storage: str) -> Iterator[bool]:
         os.close(fd)
 
 
+#: The lock file in a ``tune --out`` folder that serialises writing its outputs.
+OUT_LOCK = ".tune-out.lock"
+
+
+@contextlib.contextmanager
+def out_lock(folder: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``folder/.tune-out.lock`` for the duration.
+
+    Two ``tune`` runs with the same ``--out`` (sharing the study, or not) would otherwise
+    interleave their files: one run's report.md beside the other's controller.yaml. Under the
+    lock each run writes its controller.yaml, plants, report.md and plots together; the last
+    to finish wins, whole.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / OUT_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
 def repair_journal(path: Path) -> bool:
     """Drop a torn last line of a journal file (a write cut by a crash). Only when alone.
 
@@ -277,5 +299,6 @@ def repair_journal(path: Path) -> bool:
 
 
 __all__ = ["DEFAULT_JOURNAL", "GRACE_PERIOD", "HEARTBEAT_INTERVAL", "JOURNAL_LOCK_GRACE_S",
-           "RUNNING_TRIAL_OPS", "StorageError", "TrialEndSyncBackend", "is_url", "local_file",
-           "local_lock", "open_storage", "redact_url", "repair_journal", "storage_scheme"]
+           "OUT_LOCK", "RUNNING_TRIAL_OPS", "StorageError", "TrialEndSyncBackend", "is_url",
+           "local_file", "local_lock", "open_storage", "out_lock", "redact_url", "repair_journal",
+           "storage_scheme"]
