@@ -232,9 +232,7 @@ def search_space(model: ModelConfig, variant: str = "modified_darc") -> SearchSp
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     r_m = motion_R(model)
     r_f = PAPER_FORCE_R
-    # Q/R of the motion filter over 1e3..1e11 1/s^4: bandwidth ~ (Q/R)^(1/6), 20..430 rad/s
-    # (down to 1e3 since the best trials of the fleet's studies sat at 1e5, docs/tuning.md)
-    q_lo, q_hi = MOTION_Q_OVER_R
+    q_lo, q_hi = MOTION_Q_OVER_R  # Q/R [1/s^4]; the module docstring says why these ends
     motion_q = ParamSpec("kalman.motion.Q", q_lo * r_m, q_hi * r_m, True, "m^2/s^4",
                          PAPER_Q_OVER_R * r_m)
     if variant == "pid":
